@@ -1,0 +1,30 @@
+//! grainpipe-core: the volume data model, the stage contract, the registry and the YAML
+//! pipeline engine. The core knows no plugin; plugins fill a [`Registry`].
+
+pub mod engine;
+pub mod fsutil;
+pub mod model;
+pub mod pipeline;
+pub mod registry;
+pub mod stage;
+pub mod units;
+
+pub use model::*;
+pub use registry::{Exporter, Registry};
+pub use stage::{
+    input, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, RunContext, Stage,
+    StageError, StageInfo, TypedStage,
+};
+
+/// grainpipe's version, recorded in every output's provenance.
+pub const VERSION: &str = env!("CARGO_PKG_VERSION");
+
+/// Derives a 64-bit seed from a parent seed and a label (stable across platforms and
+/// releases: BLAKE3 of the little-endian seed and the label bytes).
+pub fn derive_seed(seed: u64, label: &[u8]) -> u64 {
+    let mut h = blake3::Hasher::new();
+    h.update(&seed.to_le_bytes());
+    h.update(label);
+    let out = h.finalize();
+    u64::from_le_bytes(out.as_bytes()[..8].try_into().expect("8 bytes"))
+}

@@ -1,0 +1,527 @@
+//! The volume data model shared by every stage. SI units throughout (metres, kilograms,
+//! seconds, kelvin). Voxel arrays are stored x fastest: `index = x + nx * (y + ny * z)`.
+
+use indexmap::IndexMap;
+use serde::{Deserialize, Serialize};
+use std::f64::consts::PI;
+use std::fmt;
+
+/// A regular voxel grid. `nz = 1` for 2-D images.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Grid {
+    pub dims: [usize; 3],
+    /// Voxel edge lengths [m].
+    pub spacing: [f64; 3],
+    /// Position of the grid's lower corner (not of the first voxel centre) [m].
+    pub origin: [f64; 3],
+    pub periodic: [bool; 3],
+}
+
+impl Grid {
+    pub fn voxel_count(&self) -> usize {
+        self.dims.iter().product()
+    }
+    pub fn index(&self, x: usize, y: usize, z: usize) -> usize {
+        x + self.dims[0] * (y + self.dims[1] * z)
+    }
+    /// Physical size of the grid [m].
+    pub fn extent(&self) -> [f64; 3] {
+        [0, 1, 2].map(|a| self.dims[a] as f64 * self.spacing[a])
+    }
+    pub fn voxel_center(&self, x: usize, y: usize, z: usize) -> [f64; 3] {
+        let i = [x, y, z];
+        [0, 1, 2].map(|a| self.origin[a] + (i[a] as f64 + 0.5) * self.spacing[a])
+    }
+    pub fn voxel_volume(&self) -> f64 {
+        self.spacing.iter().product()
+    }
+}
+
+/// A named phase of a [`PhaseImage`]. Label 0 is pore by convention.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Phase {
+    pub id: u8,
+    pub name: String,
+}
+
+/// A segmented (labelled) volume: one `u8` label per voxel.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PhaseImage {
+    pub grid: Grid,
+    pub labels: Vec<u8>,
+    pub phases: Vec<Phase>,
+}
+
+impl PhaseImage {
+    /// Volume fraction of voxels carrying `label`.
+    pub fn fraction(&self, label: u8) -> f64 {
+        if self.labels.is_empty() {
+            return 0.0;
+        }
+        self.labels.iter().filter(|&&l| l == label).count() as f64 / self.labels.len() as f64
+    }
+}
+
+/// Per-voxel values of one physical quantity.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum FieldData {
+    F32(Vec<f32>),
+    F64(Vec<f64>),
+}
+
+impl FieldData {
+    pub fn len(&self) -> usize {
+        match self {
+            FieldData::F32(v) => v.len(),
+            FieldData::F64(v) => v.len(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    pub fn get(&self, i: usize) -> f64 {
+        match self {
+            FieldData::F32(v) => v[i] as f64,
+            FieldData::F64(v) => v[i],
+        }
+    }
+}
+
+/// A voxel field with `components` values per voxel (component fastest).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Field {
+    pub grid: Grid,
+    pub name: String,
+    /// SI unit string, e.g. "K" or "Pa".
+    pub unit: String,
+    pub components: usize,
+    pub data: FieldData,
+}
+
+/// One sphere of a clump, relative to the clump's centroid in its body frame [m].
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ClumpSphere {
+    pub offset: [f64; 3],
+    pub radius: f64,
+}
+
+/// A grain represented as a cluster of overlapping spheres.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Clump {
+    pub spheres: Vec<ClumpSphere>,
+    /// Volume of the union of the spheres [m^3].
+    pub volume: f64,
+    /// Radius of the smallest centroid-centred sphere enclosing the clump [m].
+    pub bounding_radius: f64,
+    /// Principal moments of inertia per unit density [m^5].
+    pub principal_inertia: [f64; 3],
+    /// Principal axes as rows, in the body frame.
+    pub principal_axes: [[f64; 3]; 3],
+    /// Where the grain came from (file name, label id, generator).
+    pub source: String,
+}
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ClumpLibrary {
+    pub clumps: Vec<Clump>,
+    pub source: String,
+}
+
+/// Solids cut out of a packing domain (the hemispheres of the paper's Example 3, ...).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ExcludedSolid {
+    Sphere { center: [f64; 3], radius: f64 },
+}
+
+/// The region a packing fills.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Domain {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+    pub periodic: [bool; 3],
+    pub excluded: Vec<ExcludedSolid>,
+}
+
+impl Domain {
+    pub fn boxed(min: [f64; 3], max: [f64; 3], periodic: [bool; 3]) -> Self {
+        Domain { min, max, periodic, excluded: Vec::new() }
+    }
+    pub fn size(&self) -> [f64; 3] {
+        [0, 1, 2].map(|a| self.max[a] - self.min[a])
+    }
+    pub fn volume(&self) -> f64 {
+        self.size().iter().product()
+    }
+}
+
+/// The geometry of one body.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum BodyShape {
+    Sphere { radius: f64 },
+    /// Index into the packing's clump library.
+    Clump { index: usize },
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Body {
+    pub shape: BodyShape,
+    /// Centroid [m].
+    pub position: [f64; 3],
+    /// Orientation quaternion (w, x, y, z), body frame -> world frame.
+    pub orientation: [f64; 4],
+    pub layer: u32,
+    pub frozen: bool,
+}
+
+impl Body {
+    pub fn sphere(position: [f64; 3], radius: f64) -> Self {
+        Body {
+            shape: BodyShape::Sphere { radius },
+            position,
+            orientation: [1.0, 0.0, 0.0, 0.0],
+            layer: 0,
+            frozen: false,
+        }
+    }
+}
+
+/// A per-body attribute (exported as VTK point data), e.g. peak temperature.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BodyAttribute {
+    pub unit: String,
+    pub values: Vec<f64>,
+}
+
+/// Bodies placed in a domain.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Packing {
+    pub domain: Domain,
+    pub bodies: Vec<Body>,
+    /// Needed when any body is a [`BodyShape::Clump`].
+    pub library: Option<ClumpLibrary>,
+    /// Named per-body values, each with one value per body.
+    pub attributes: IndexMap<String, BodyAttribute>,
+}
+
+/// A sphere in world coordinates, belonging to body `body`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WorldSphere {
+    pub center: [f64; 3],
+    pub radius: f64,
+    pub body: usize,
+}
+
+/// Rotates `v` by the unit quaternion `q` = (w, x, y, z).
+pub fn rotate(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
+    let [w, x, y, z] = q;
+    // v' = v + 2 w (u x v) + 2 u x (u x v), u = (x, y, z)
+    let u = [x, y, z];
+    let c1 = cross(u, v);
+    let c2 = cross(u, c1);
+    [0, 1, 2].map(|a| v[a] + 2.0 * (w * c1[a] + c2[a]))
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+}
+
+impl Packing {
+    pub fn new(domain: Domain) -> Self {
+        Packing { domain, bodies: Vec::new(), library: None, attributes: IndexMap::new() }
+    }
+
+    /// Every sphere of every body in world coordinates (clumps expanded).
+    pub fn world_spheres(&self) -> Vec<WorldSphere> {
+        let mut out = Vec::with_capacity(self.bodies.len());
+        for (b, body) in self.bodies.iter().enumerate() {
+            match &body.shape {
+                BodyShape::Sphere { radius } => {
+                    out.push(WorldSphere { center: body.position, radius: *radius, body: b })
+                }
+                BodyShape::Clump { index } => {
+                    let clump = &self.library.as_ref().expect("clump body without library").clumps
+                        [*index];
+                    for s in &clump.spheres {
+                        let r = rotate(body.orientation, s.offset);
+                        out.push(WorldSphere {
+                            center: [0, 1, 2].map(|a| body.position[a] + r[a]),
+                            radius: s.radius,
+                            body: b,
+                        });
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    /// Volume of one body [m^3] (clump volumes are the union volumes of the library).
+    pub fn body_volume(&self, body: &Body) -> f64 {
+        match &body.shape {
+            BodyShape::Sphere { radius } => 4.0 / 3.0 * PI * radius.powi(3),
+            BodyShape::Clump { index } => {
+                self.library.as_ref().map(|l| l.clumps[*index].volume).unwrap_or(0.0)
+            }
+        }
+    }
+
+    /// Sum of body volumes [m^3]; equals the solid volume when bodies do not overlap.
+    pub fn solid_volume(&self) -> f64 {
+        self.bodies.iter().map(|b| self.body_volume(b)).sum()
+    }
+
+    /// Analytic solid volume fraction (bodies assumed non-overlapping, excluded solids not
+    /// subtracted from the box volume).
+    pub fn volume_fraction(&self) -> f64 {
+        self.solid_volume() / self.domain.volume()
+    }
+}
+
+/// Index of a face of the domain box, in the order xmin, xmax, ymin, ymax, zmin, zmax.
+pub const FACE_NAMES: [&str; 6] = ["xmin", "xmax", "ymin", "ymax", "zmin", "zmax"];
+
+/// A pair of bodies in (or near) contact.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Contact {
+    pub i: usize,
+    pub j: usize,
+    /// Surface separation [m]; negative for overlap.
+    pub gap: f64,
+}
+
+/// Contacts between bodies of a packing, the bodies on each domain face and bonds.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ContactGraph {
+    pub contacts: Vec<Contact>,
+    /// Bodies on each face, in [`FACE_NAMES`] order (the paper's ListXmin .. ListZmax).
+    pub faces: [Vec<usize>; 6],
+    /// Bonded pairs (i < j), e.g. sinter necks or cement bridges.
+    pub bonds: Vec<[usize; 2]>,
+    /// Body positions, so the graph can be drawn on its own (lines between centres).
+    pub positions: Vec<[f64; 3]>,
+}
+
+/// Values of one table column.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ColumnData {
+    F64(Vec<f64>),
+    I64(Vec<i64>),
+    Str(Vec<String>),
+}
+
+impl ColumnData {
+    pub fn len(&self) -> usize {
+        match self {
+            ColumnData::F64(v) => v.len(),
+            ColumnData::I64(v) => v.len(),
+            ColumnData::Str(v) => v.len(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Column {
+    pub name: String,
+    pub unit: String,
+    pub data: ColumnData,
+}
+
+/// Named columns of equal length, each with a unit.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Table {
+    pub name: String,
+    pub columns: Vec<Column>,
+}
+
+impl Table {
+    pub fn new(name: impl Into<String>) -> Self {
+        Table { name: name.into(), columns: Vec::new() }
+    }
+    pub fn with_f64(mut self, name: &str, unit: &str, values: Vec<f64>) -> Self {
+        self.columns.push(Column { name: name.into(), unit: unit.into(), data: ColumnData::F64(values) });
+        self
+    }
+    pub fn with_i64(mut self, name: &str, unit: &str, values: Vec<i64>) -> Self {
+        self.columns.push(Column { name: name.into(), unit: unit.into(), data: ColumnData::I64(values) });
+        self
+    }
+    pub fn with_str(mut self, name: &str, values: Vec<String>) -> Self {
+        self.columns.push(Column { name: name.into(), unit: String::new(), data: ColumnData::Str(values) });
+        self
+    }
+    pub fn rows(&self) -> usize {
+        self.columns.first().map(|c| c.data.len()).unwrap_or(0)
+    }
+    pub fn column(&self, name: &str) -> Option<&Column> {
+        self.columns.iter().find(|c| c.name == name)
+    }
+    pub fn f64_column(&self, name: &str) -> Option<&[f64]> {
+        match &self.column(name)?.data {
+            ColumnData::F64(v) => Some(v),
+            _ => None,
+        }
+    }
+    /// Checks that every column has the same length.
+    pub fn validate(&self) -> Result<(), String> {
+        let n = self.rows();
+        for c in &self.columns {
+            if c.data.len() != n {
+                return Err(format!(
+                    "table `{}`: column `{}` has {} rows, expected {n}",
+                    self.name,
+                    c.name,
+                    c.data.len()
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// How a symmetric tensor is laid out in its matrix form.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum TensorConvention {
+    /// Full components, row-major.
+    Plain,
+    /// 6x6 in Voigt notation (order 11, 22, 33, 23, 13, 12; no sqrt(2) factors).
+    Voigt,
+    /// 6x6 in Mandel notation (order 11, 22, 33, 23, 13, 12; shear rows/columns scaled by sqrt 2).
+    Mandel,
+}
+
+/// A small dense tensor (stiffness, permeability, orientation tensor, ...).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Tensor {
+    pub name: String,
+    pub unit: String,
+    pub shape: Vec<usize>,
+    /// Row-major values.
+    pub values: Vec<f64>,
+    pub convention: TensorConvention,
+}
+
+/// A time series of artifacts of one kind (e.g. temperature snapshots of a packing).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Series {
+    /// (time [s], frame) in increasing time.
+    pub frames: Vec<(f64, Artifact)>,
+}
+
+/// Anything a stage takes or gives.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Artifact {
+    PhaseImage(PhaseImage),
+    Field(Field),
+    ClumpLibrary(ClumpLibrary),
+    Packing(Packing),
+    ContactGraph(ContactGraph),
+    Table(Table),
+    Tensor(Tensor),
+    Series(Series),
+}
+
+/// The kind of an [`Artifact`], used to type-check pipelines before anything runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum ArtifactKind {
+    PhaseImage,
+    Field,
+    ClumpLibrary,
+    Packing,
+    ContactGraph,
+    Table,
+    Tensor,
+    Series,
+}
+
+impl fmt::Display for ArtifactKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{self:?}")
+    }
+}
+
+impl Artifact {
+    pub fn kind(&self) -> ArtifactKind {
+        match self {
+            Artifact::PhaseImage(_) => ArtifactKind::PhaseImage,
+            Artifact::Field(_) => ArtifactKind::Field,
+            Artifact::ClumpLibrary(_) => ArtifactKind::ClumpLibrary,
+            Artifact::Packing(_) => ArtifactKind::Packing,
+            Artifact::ContactGraph(_) => ArtifactKind::ContactGraph,
+            Artifact::Table(_) => ArtifactKind::Table,
+            Artifact::Tensor(_) => ArtifactKind::Tensor,
+            Artifact::Series(_) => ArtifactKind::Series,
+        }
+    }
+}
+
+macro_rules! artifact_accessors {
+    ($($fn_name:ident => $variant:ident),* $(,)?) => {
+        impl Artifact {
+            $(
+                pub fn $fn_name(&self) -> Option<&$variant> {
+                    match self {
+                        Artifact::$variant(x) => Some(x),
+                        _ => None,
+                    }
+                }
+            )*
+        }
+    };
+}
+
+artifact_accessors! {
+    as_phase_image => PhaseImage,
+    as_field => Field,
+    as_clump_library => ClumpLibrary,
+    as_packing => Packing,
+    as_contact_graph => ContactGraph,
+    as_table => Table,
+    as_tensor => Tensor,
+    as_series => Series,
+}
+
+/// What preflight knows about an artifact before it exists: its kind, the grid of voxel
+/// artifacts when known, and an estimated size.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ArtifactMeta {
+    pub kind: ArtifactKind,
+    pub grid: Option<Grid>,
+    /// Estimated number of items (bodies, contacts, rows); 0 when unknown.
+    pub count_estimate: u64,
+}
+
+impl ArtifactMeta {
+    pub fn of(kind: ArtifactKind) -> Self {
+        ArtifactMeta { kind, grid: None, count_estimate: 0 }
+    }
+}
+
+/// Metadata about how an artifact was made, written into every exported file.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Provenance {
+    pub entries: IndexMap<String, String>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quaternion_rotation_matches_rotation_matrix() {
+        // 90 degrees about z: x -> y.
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        let v = rotate([h, 0.0, 0.0, h], [1.0, 0.0, 0.0]);
+        assert!((v[0]).abs() < 1e-15 && (v[1] - 1.0).abs() < 1e-15 && v[2].abs() < 1e-15);
+    }
+
+    #[test]
+    fn sphere_packing_fraction_is_analytic() {
+        let mut p = Packing::new(Domain::boxed([0.0; 3], [1.0; 3], [true; 3]));
+        p.bodies.push(Body::sphere([0.5; 3], 0.25));
+        let expected = 4.0 / 3.0 * PI * 0.25f64.powi(3);
+        assert!((p.volume_fraction() - expected).abs() < 1e-15);
+    }
+}

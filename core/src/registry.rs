@@ -1,0 +1,147 @@
+//! The registry of stages and exporters. Each plugin crate fills it in its
+//! `register(&mut Registry)`; the core knows no plugin by name.
+
+use crate::model::{Artifact, ArtifactKind, Provenance};
+use crate::stage::{Stage, Typed, TypedStage};
+use indexmap::IndexMap;
+use std::path::Path;
+use std::sync::Arc;
+
+/// Writes artifacts of some kinds to one file format.
+pub trait Exporter: Send + Sync {
+    /// Format name as written in YAML `format:` (e.g. `vti`, `vtkhdf`, `h5`, `nc`, `csv`).
+    fn name(&self) -> &'static str;
+    /// File extensions (without dot) that select this exporter when `format:` is omitted.
+    fn extensions(&self) -> &'static [&'static str];
+    fn accepts(&self, kind: ArtifactKind) -> bool;
+    fn doc(&self) -> &'static str;
+    /// Writes atomically: a crash never leaves a partial file at `path`.
+    fn write(&self, artifact: &Artifact, path: &Path, provenance: &Provenance) -> Result<(), String>;
+}
+
+/// A stage with where it came from (`built-in` or a plugin library path).
+#[derive(Clone)]
+pub struct Registered {
+    pub stage: Arc<dyn Stage>,
+    pub origin: String,
+}
+
+#[derive(Default)]
+pub struct Registry {
+    stages: IndexMap<String, Registered>,
+    exporters: Vec<Arc<dyn Exporter>>,
+    origin: Option<String>,
+}
+
+impl Registry {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Sets the origin recorded for stages added from now on (plugin loaders use this).
+    pub fn set_origin(&mut self, origin: Option<String>) {
+        self.origin = origin;
+    }
+
+    pub fn add_stage<T: TypedStage>(&mut self, stage: T) {
+        self.add_dyn_stage(Arc::new(Typed::new(stage)));
+    }
+
+    /// Adds a stage. Panics on a duplicate id: two plugins claiming one id is a packaging
+    /// bug that must not be resolved silently by load order.
+    pub fn add_dyn_stage(&mut self, stage: Arc<dyn Stage>) {
+        let id = stage.info().id.to_string();
+        let origin = self.origin.clone().unwrap_or_else(|| "built-in".to_string());
+        if let Some(prev) = self.stages.get(&id) {
+            panic!("stage `{id}` registered twice ({} and {origin})", prev.origin);
+        }
+        self.stages.insert(id, Registered { stage, origin });
+    }
+
+    /// Like [`Registry::add_dyn_stage`] but returns an error on a duplicate id.
+    pub fn try_add_dyn_stage(&mut self, stage: Arc<dyn Stage>) -> Result<(), String> {
+        let id = stage.info().id;
+        if let Some(prev) = self.stages.get(id) {
+            return Err(format!("stage `{id}` is already provided by {}", prev.origin));
+        }
+        self.add_dyn_stage(stage);
+        Ok(())
+    }
+
+    pub fn add_exporter(&mut self, exporter: impl Exporter + 'static) {
+        self.exporters.push(Arc::new(exporter));
+    }
+
+    pub fn stage(&self, id: &str) -> Option<&Registered> {
+        self.stages.get(id)
+    }
+
+    /// Stages sorted by id.
+    pub fn stages(&self) -> Vec<&Registered> {
+        let mut v: Vec<_> = self.stages.values().collect();
+        v.sort_by_key(|r| r.stage.info().id);
+        v
+    }
+
+    pub fn exporters(&self) -> &[Arc<dyn Exporter>] {
+        &self.exporters
+    }
+
+    /// The exporter for an explicit format name, or else for the path's extension.
+    pub fn exporter_for(&self, format: Option<&str>, path: &Path) -> Option<Arc<dyn Exporter>> {
+        match format {
+            Some(f) => self.exporters.iter().find(|e| e.name() == f).cloned(),
+            None => {
+                let ext = path.extension()?.to_str()?.to_ascii_lowercase();
+                self.exporters
+                    .iter()
+                    .find(|e| e.extensions().contains(&ext.as_str()))
+                    .cloned()
+            }
+        }
+    }
+
+    /// The closest known stage id, for "did you mean" messages.
+    pub fn suggest_stage(&self, id: &str) -> Option<String> {
+        closest(id, self.stages.keys().map(|s| s.as_str()))
+    }
+
+    /// Checks that every stage's declared parameters match its defaults, key for key, so
+    /// `pipe describe` cannot drift from the params struct.
+    pub fn check_consistency(&self) -> Result<(), String> {
+        for r in self.stages.values() {
+            let info = r.stage.info();
+            let defaults = r.stage.default_params();
+            let keys: Vec<&str> = defaults
+                .as_object()
+                .map(|m| m.keys().map(|k| k.as_str()).collect())
+                .unwrap_or_default();
+            for p in &info.params {
+                if !keys.contains(&p.name) {
+                    return Err(format!("{}: documented param `{}` is not a field", info.id, p.name));
+                }
+            }
+            for k in &keys {
+                if !info.params.iter().any(|p| p.name == *k) {
+                    return Err(format!("{}: field `{k}` is not documented", info.id));
+                }
+            }
+            if !info.id.contains('.') {
+                return Err(format!("{}: stage ids are `<family>.<name>`", info.id));
+            }
+            r.stage
+                .normalize_params(&serde_json::json!({}))
+                .map_err(|e| format!("{}: defaults do not parse: {e}", info.id))?;
+        }
+        Ok(())
+    }
+}
+
+/// The candidate closest to `word` by Jaro-Winkler similarity, if reasonably close.
+pub fn closest<'a>(word: &str, candidates: impl Iterator<Item = &'a str>) -> Option<String> {
+    candidates
+        .map(|c| (strsim::jaro_winkler(word, c), c))
+        .filter(|(s, _)| *s > 0.75)
+        .max_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, c)| c.to_string())
+}

@@ -1,0 +1,278 @@
+//! The stage contract: what a stage declares (id, version, doc, parameters, ports), how it
+//! is checked before anything runs (`preflight`) and how it runs.
+//!
+//! Stage authors implement [`TypedStage`] with a serde params struct; the engine sees the
+//! object-safe [`Stage`], whose parameters are JSON values (the same representation crosses
+//! the C ABI for third-party plugins).
+
+use crate::model::{Artifact, ArtifactKind, ArtifactMeta};
+use indexmap::IndexMap;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{de::DeserializeOwned, Serialize};
+use std::sync::Arc;
+
+/// A declared parameter, shown by `pipe describe`.
+#[derive(Clone, Debug)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    /// Short type description: "length", "integer", "one of: a, b", "[m, n, p]", ...
+    pub ty: &'static str,
+    /// SI unit of the value ("" for dimensionless or non-numeric).
+    pub unit: &'static str,
+    pub doc: &'static str,
+}
+
+/// A declared input or output port.
+#[derive(Clone, Debug)]
+pub struct PortSpec {
+    pub name: &'static str,
+    pub kind: ArtifactKind,
+    pub doc: &'static str,
+    /// Optional inputs may be left unconnected.
+    pub optional: bool,
+}
+
+impl PortSpec {
+    pub const fn new(name: &'static str, kind: ArtifactKind, doc: &'static str) -> Self {
+        PortSpec { name, kind, doc, optional: false }
+    }
+    pub const fn optional(name: &'static str, kind: ArtifactKind, doc: &'static str) -> Self {
+        PortSpec { name, kind, doc, optional: true }
+    }
+}
+
+/// Everything a stage says about itself.
+#[derive(Clone, Debug)]
+pub struct StageInfo {
+    /// `<family>.<name>`, e.g. `packing.rsa`.
+    pub id: &'static str,
+    /// Semantic version; part of the cache key, so bump it when results change.
+    pub version: &'static str,
+    /// One paragraph: what it does, the method, the paper it follows.
+    pub doc: &'static str,
+    pub params: Vec<ParamSpec>,
+    pub inputs: Vec<PortSpec>,
+    pub outputs: Vec<PortSpec>,
+}
+
+/// Result of a successful preflight.
+#[derive(Clone, Debug)]
+pub struct Preflight {
+    pub outputs: IndexMap<String, ArtifactMeta>,
+    /// Estimated peak memory of `run` [bytes].
+    pub memory_bytes: u64,
+}
+
+impl Preflight {
+    /// Outputs as declared by `info`, no grid knowledge, given memory estimate.
+    pub fn from_info(info: &StageInfo, memory_bytes: u64) -> Self {
+        Preflight {
+            outputs: info
+                .outputs
+                .iter()
+                .map(|p| (p.name.to_string(), ArtifactMeta::of(p.kind)))
+                .collect(),
+            memory_bytes,
+        }
+    }
+}
+
+/// Errors a stage reports. Parameter and input errors are found in preflight and refer to
+/// the YAML; failures happen while running (a packing that jams, a solver that diverges).
+#[derive(Debug, thiserror::Error)]
+pub enum StageError {
+    #[error("parameter `{key}`: {message}")]
+    InvalidParam { key: String, message: String },
+    #[error("input `{port}`: {message}")]
+    InvalidInput { port: String, message: String },
+    #[error("{0}")]
+    Failed(String),
+    #[error("cancelled")]
+    Cancelled,
+    #[error("I/O: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+impl StageError {
+    pub fn param(key: &str, message: impl Into<String>) -> Self {
+        StageError::InvalidParam { key: key.to_string(), message: message.into() }
+    }
+    pub fn input(port: &str, message: impl Into<String>) -> Self {
+        StageError::InvalidInput { port: port.to_string(), message: message.into() }
+    }
+    pub fn failed(message: impl Into<String>) -> Self {
+        StageError::Failed(message.into())
+    }
+}
+
+/// Receives progress and messages from a running stage; also carries the cancel flag.
+pub trait Reporter: Send + Sync {
+    /// `done` out of `total` units of work (total 0 = unknown).
+    fn progress(&self, done: u64, total: u64);
+    fn message(&self, level: Level, text: &str);
+    fn cancelled(&self) -> bool;
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Level {
+    Info,
+    Warn,
+}
+
+/// A reporter that discards everything (tests, nested runs).
+pub struct SilentReporter;
+
+impl Reporter for SilentReporter {
+    fn progress(&self, _: u64, _: u64) {}
+    fn message(&self, _: Level, _: &str) {}
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
+
+/// What a running stage gets from the engine.
+pub struct RunContext<'a> {
+    /// The stage's own seed, derived from the pipeline seed and the step id.
+    pub seed: u64,
+    reporter: &'a dyn Reporter,
+}
+
+impl<'a> RunContext<'a> {
+    pub fn new(seed: u64, reporter: &'a dyn Reporter) -> Self {
+        RunContext { seed, reporter }
+    }
+
+    /// A fresh generator for this stage's stream. Calling it twice gives the same stream.
+    pub fn rng(&self) -> ChaCha8Rng {
+        ChaCha8Rng::seed_from_u64(self.seed)
+    }
+
+    /// An independent stream `k` of this stage, for parallel work whose result must not
+    /// depend on the number of threads (give each work item its own stream).
+    pub fn substream(&self, k: u64) -> ChaCha8Rng {
+        ChaCha8Rng::seed_from_u64(crate::derive_seed(self.seed, &k.to_le_bytes()))
+    }
+
+    /// Reports progress; returns `Err(Cancelled)` when the user interrupted the run.
+    pub fn progress(&self, done: u64, total: u64) -> Result<(), StageError> {
+        self.reporter.progress(done, total);
+        if self.reporter.cancelled() {
+            Err(StageError::Cancelled)
+        } else {
+            Ok(())
+        }
+    }
+
+    pub fn info(&self, text: &str) {
+        self.reporter.message(Level::Info, text);
+    }
+
+    pub fn warn(&self, text: &str) {
+        self.reporter.message(Level::Warn, text);
+    }
+}
+
+/// Inputs by port name.
+pub type Inputs = IndexMap<String, Arc<Artifact>>;
+/// Outputs by port name.
+pub type Outputs = IndexMap<String, Artifact>;
+/// Input metadata by port name, for preflight.
+pub type InputMetas = IndexMap<String, ArtifactMeta>;
+
+/// Fetches a typed input, with an error naming the port when it is missing or of the wrong kind.
+pub fn input<'a, T>(
+    inputs: &'a Inputs,
+    port: &str,
+    get: impl Fn(&'a Artifact) -> Option<&'a T>,
+) -> Result<&'a T, StageError> {
+    let a = inputs
+        .get(port)
+        .ok_or_else(|| StageError::input(port, "not connected"))?;
+    get(a).ok_or_else(|| StageError::input(port, format!("got a {}", a.kind())))
+}
+
+/// The object-safe stage interface the engine uses.
+pub trait Stage: Send + Sync {
+    fn info(&self) -> &StageInfo;
+    /// Default parameter values as JSON (SI numbers).
+    fn default_params(&self) -> serde_json::Value;
+    /// Parses and validates parameters; returns the canonical JSON (defaults filled in, units
+    /// converted to SI), which is what the cache key hashes.
+    fn normalize_params(&self, params: &serde_json::Value) -> Result<serde_json::Value, StageError>;
+    fn preflight(
+        &self,
+        params: &serde_json::Value,
+        inputs: &InputMetas,
+    ) -> Result<Preflight, StageError>;
+    fn run(
+        &self,
+        params: &serde_json::Value,
+        inputs: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError>;
+}
+
+/// The typed interface stage authors implement.
+pub trait TypedStage: Send + Sync + 'static {
+    /// `#[serde(deny_unknown_fields, default)]` struct with `Default` giving the defaults.
+    type Params: Serialize + DeserializeOwned + Default + Send + Sync;
+    fn info(&self) -> StageInfo;
+    /// Checks parameter values and input shapes without allocating anything large.
+    fn preflight(&self, params: &Self::Params, inputs: &InputMetas) -> Result<Preflight, StageError>;
+    fn run(&self, params: &Self::Params, inputs: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError>;
+}
+
+/// Adapts a [`TypedStage`] to [`Stage`].
+pub struct Typed<T: TypedStage> {
+    inner: T,
+    info: StageInfo,
+}
+
+impl<T: TypedStage> Typed<T> {
+    pub fn new(inner: T) -> Self {
+        let info = inner.info();
+        Typed { inner, info }
+    }
+
+    fn parse(&self, params: &serde_json::Value) -> Result<T::Params, StageError> {
+        serde_path_to_error::deserialize(params).map_err(|e| {
+            let path = e.path().to_string();
+            let inner = e.into_inner().to_string();
+            let key = if path == "." || path.is_empty() {
+                // serde reports unknown fields at the parent: take the field name from the message.
+                unknown_field_name(&inner).unwrap_or_default()
+            } else {
+                path
+            };
+            StageError::InvalidParam { key, message: inner }
+        })
+    }
+}
+
+/// Extracts `x` from serde's "unknown field `x`, expected ..." message.
+pub fn unknown_field_name(message: &str) -> Option<String> {
+    let rest = message.strip_prefix("unknown field `")?;
+    Some(rest[..rest.find('`')?].to_string())
+}
+
+impl<T: TypedStage> Stage for Typed<T> {
+    fn info(&self) -> &StageInfo {
+        &self.info
+    }
+    fn default_params(&self) -> serde_json::Value {
+        serde_json::to_value(T::Params::default()).expect("params serialize")
+    }
+    fn normalize_params(&self, params: &serde_json::Value) -> Result<serde_json::Value, StageError> {
+        let p = self.parse(params)?;
+        serde_json::to_value(p).map_err(|e| StageError::failed(e.to_string()))
+    }
+    fn preflight(&self, params: &serde_json::Value, inputs: &InputMetas) -> Result<Preflight, StageError> {
+        let p = self.parse(params)?;
+        self.inner.preflight(&p, inputs)
+    }
+    fn run(&self, params: &serde_json::Value, inputs: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
+        let p = self.parse(params)?;
+        self.inner.run(&p, inputs, ctx)
+    }
+}

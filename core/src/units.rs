@@ -1,0 +1,367 @@
+//! Physical quantities in SI units, with parsing of unit strings such as `"140 um"`,
+//! `"66.9 GPa"` or `"0.5 J/(g K)"`.
+//!
+//! Everything inside grainpipe is SI. YAML values may be plain numbers (taken as SI) or
+//! strings with a unit; [`Q`] checks the dimension when it deserializes, so `radius: 3 W`
+//! is refused with a message naming the expected unit.
+
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
+use std::fmt;
+use std::marker::PhantomData;
+
+/// Exponents of the SI base units (m, kg, s, K, A, mol, cd).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct Dimension(pub [i8; 7]);
+
+impl Dimension {
+    pub const NONE: Dimension = Dimension([0; 7]);
+    pub const LENGTH: Dimension = Dimension([1, 0, 0, 0, 0, 0, 0]);
+    pub const MASS: Dimension = Dimension([0, 1, 0, 0, 0, 0, 0]);
+    pub const TIME: Dimension = Dimension([0, 0, 1, 0, 0, 0, 0]);
+    pub const TEMPERATURE: Dimension = Dimension([0, 0, 0, 1, 0, 0, 0]);
+
+    fn mul(self, other: Dimension, power: i8) -> Dimension {
+        let mut e = self.0;
+        for (a, b) in e.iter_mut().zip(other.0) {
+            *a += b * power;
+        }
+        Dimension(e)
+    }
+}
+
+impl fmt::Display for Dimension {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        const NAMES: [&str; 7] = ["m", "kg", "s", "K", "A", "mol", "cd"];
+        if *self == Dimension::NONE {
+            return write!(f, "1 (dimensionless)");
+        }
+        let mut first = true;
+        for (name, e) in NAMES.iter().zip(self.0) {
+            if e == 0 {
+                continue;
+            }
+            if !first {
+                write!(f, " ")?;
+            }
+            first = false;
+            if e == 1 {
+                write!(f, "{name}")?;
+            } else {
+                write!(f, "{name}^{e}")?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A parsed quantity: SI value and its dimension.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Quantity {
+    pub value: f64,
+    pub dim: Dimension,
+}
+
+/// Named units: symbol, factor to SI, dimension.
+const UNITS: &[(&str, f64, [i8; 7])] = &[
+    ("m", 1.0, [1, 0, 0, 0, 0, 0, 0]),
+    ("g", 1e-3, [0, 1, 0, 0, 0, 0, 0]),
+    ("s", 1.0, [0, 0, 1, 0, 0, 0, 0]),
+    ("min", 60.0, [0, 0, 1, 0, 0, 0, 0]),
+    ("h", 3600.0, [0, 0, 1, 0, 0, 0, 0]),
+    ("K", 1.0, [0, 0, 0, 1, 0, 0, 0]),
+    ("A", 1.0, [0, 0, 0, 0, 1, 0, 0]),
+    ("mol", 1.0, [0, 0, 0, 0, 0, 1, 0]),
+    ("N", 1.0, [1, 1, -2, 0, 0, 0, 0]),
+    ("Pa", 1.0, [-1, 1, -2, 0, 0, 0, 0]),
+    ("J", 1.0, [2, 1, -2, 0, 0, 0, 0]),
+    ("W", 1.0, [2, 1, -3, 0, 0, 0, 0]),
+    ("Hz", 1.0, [0, 0, -1, 0, 0, 0, 0]),
+    ("L", 1e-3, [3, 0, 0, 0, 0, 0, 0]),
+    ("D", 9.869_233e-13, [2, 0, 0, 0, 0, 0, 0]), // darcy, for permeability
+    ("%", 0.01, [0, 0, 0, 0, 0, 0, 0]),
+];
+
+const PREFIXES: &[(&str, f64)] = &[
+    ("p", 1e-12),
+    ("n", 1e-9),
+    ("u", 1e-6),
+    ("µ", 1e-6),
+    ("μ", 1e-6),
+    ("m", 1e-3),
+    ("c", 1e-2),
+    ("k", 1e3),
+    ("M", 1e6),
+    ("G", 1e9),
+    ("T", 1e12),
+];
+
+fn lookup_unit(symbol: &str) -> Option<(f64, Dimension)> {
+    // Exact names win over prefix decomposition ("min" is minutes, not milli-inch; "m" is metre).
+    if let Some((_, f, d)) = UNITS.iter().find(|(s, _, _)| *s == symbol) {
+        return Some((*f, Dimension(*d)));
+    }
+    for (p, pf) in PREFIXES {
+        if let Some(rest) = symbol.strip_prefix(p) {
+            if let Some((_, f, d)) = UNITS.iter().find(|(s, _, _)| *s == rest && *s != "%") {
+                return Some((pf * f, Dimension(*d)));
+            }
+        }
+    }
+    None
+}
+
+/// Parses a unit expression: products separated by spaces or `*`, one `/` level, parentheses
+/// for a grouped denominator, and integer exponents with `^` (e.g. `g/um^3`, `J/(g K)`, `W/m^2`).
+pub fn parse_unit(expr: &str) -> Result<(f64, Dimension), String> {
+    let tokens = tokenize(expr)?;
+    let mut pos = 0;
+    let (f, d) = parse_product(&tokens, &mut pos, expr)?;
+    if pos != tokens.len() {
+        return Err(format!("unexpected `{}` in unit `{expr}`", tokens[pos]));
+    }
+    Ok((f, d))
+}
+
+fn tokenize(expr: &str) -> Result<Vec<String>, String> {
+    let mut out = Vec::new();
+    let mut cur = String::new();
+    for c in expr.chars() {
+        match c {
+            ' ' | '*' | '·' | '.' => {
+                if !cur.is_empty() {
+                    out.push(std::mem::take(&mut cur));
+                }
+            }
+            '/' | '(' | ')' | '^' => {
+                if !cur.is_empty() {
+                    out.push(std::mem::take(&mut cur));
+                }
+                out.push(c.to_string());
+            }
+            _ => cur.push(c),
+        }
+    }
+    if !cur.is_empty() {
+        out.push(cur);
+    }
+    if out.is_empty() {
+        return Err("empty unit".into());
+    }
+    Ok(out)
+}
+
+fn parse_product(t: &[String], pos: &mut usize, expr: &str) -> Result<(f64, Dimension), String> {
+    let mut factor = 1.0;
+    let mut dim = Dimension::NONE;
+    let mut sign: i8 = 1;
+    while *pos < t.len() && t[*pos] != ")" {
+        if t[*pos] == "/" {
+            if sign == -1 {
+                return Err(format!("ambiguous unit `{expr}`: use parentheses after `/`"));
+            }
+            sign = -1;
+            *pos += 1;
+            continue;
+        }
+        let (f, d) = if t[*pos] == "(" {
+            *pos += 1;
+            let inner = parse_product(t, pos, expr)?;
+            if *pos >= t.len() || t[*pos] != ")" {
+                return Err(format!("unbalanced parenthesis in unit `{expr}`"));
+            }
+            *pos += 1;
+            inner
+        } else {
+            let sym = &t[*pos];
+            *pos += 1;
+            lookup_unit(sym).ok_or_else(|| format!("unknown unit `{sym}` in `{expr}`"))?
+        };
+        let mut exp: i8 = 1;
+        if *pos < t.len() && t[*pos] == "^" {
+            let e = t
+                .get(*pos + 1)
+                .ok_or_else(|| format!("missing exponent in unit `{expr}`"))?;
+            exp = e
+                .parse()
+                .map_err(|_| format!("exponent `{e}` in unit `{expr}` is not an integer"))?;
+            *pos += 2;
+        }
+        let p = exp * sign;
+        factor *= f.powi(p as i32);
+        dim = dim.mul(d, p);
+    }
+    Ok((factor, dim))
+}
+
+/// Parses `"<number> <unit>"` (or a bare number, which is dimensionless).
+pub fn parse_quantity(text: &str) -> Result<Quantity, String> {
+    let s = text.trim();
+    let split = s
+        .char_indices()
+        .find(|(i, c)| {
+            !(c.is_ascii_digit()
+                || *c == '.'
+                || *c == '-'
+                || *c == '+'
+                || ((*c == 'e' || *c == 'E')
+                    && s[i + 1..].starts_with(|n: char| n.is_ascii_digit() || n == '-' || n == '+')))
+        })
+        .map(|(i, _)| i)
+        .unwrap_or(s.len());
+    let (num, unit) = s.split_at(split);
+    let value: f64 = num
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{text}` does not start with a number"))?;
+    let unit = unit.trim();
+    if unit.is_empty() {
+        return Ok(Quantity { value, dim: Dimension::NONE });
+    }
+    let (f, dim) = parse_unit(unit)?;
+    Ok(Quantity { value: value * f, dim })
+}
+
+/// Marker for the dimension a [`Q`] must have.
+pub trait Dim {
+    const DIM: Dimension;
+    /// Unit shown in `pipe describe` and error messages.
+    const SI_UNIT: &'static str;
+}
+
+macro_rules! dims {
+    ($($name:ident = $exp:expr, $unit:expr;)*) => {$(
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+        pub struct $name;
+        impl Dim for $name {
+            const DIM: Dimension = Dimension($exp);
+            const SI_UNIT: &'static str = $unit;
+        }
+    )*};
+}
+
+dims! {
+    Dimensionless = [0, 0, 0, 0, 0, 0, 0], "1";
+    Length = [1, 0, 0, 0, 0, 0, 0], "m";
+    Area = [2, 0, 0, 0, 0, 0, 0], "m^2";
+    Volume = [3, 0, 0, 0, 0, 0, 0], "m^3";
+    Mass = [0, 1, 0, 0, 0, 0, 0], "kg";
+    Time = [0, 0, 1, 0, 0, 0, 0], "s";
+    Temperature = [0, 0, 0, 1, 0, 0, 0], "K";
+    Velocity = [1, 0, -1, 0, 0, 0, 0], "m/s";
+    Pressure = [-1, 1, -2, 0, 0, 0, 0], "Pa";
+    Power = [2, 1, -3, 0, 0, 0, 0], "W";
+    Energy = [2, 1, -2, 0, 0, 0, 0], "J";
+    Density = [-3, 1, 0, 0, 0, 0, 0], "kg/m^3";
+    SpecificHeat = [2, 0, -2, -1, 0, 0, 0], "J/(kg K)";
+    SpecificEnergy = [2, 0, -2, 0, 0, 0, 0], "J/kg";
+    Conductance = [2, 1, -3, -1, 0, 0, 0], "W/K";
+    Viscosity = [-1, 1, -1, 0, 0, 0, 0], "Pa s";
+}
+
+/// A value of dimension `D`, stored in SI. Deserializes from a number (SI) or a unit string.
+#[derive(Clone, Copy, PartialEq, PartialOrd)]
+pub struct Q<D: Dim>(pub f64, PhantomData<D>);
+
+impl<D: Dim> Q<D> {
+    pub const fn new(si: f64) -> Self {
+        Q(si, PhantomData)
+    }
+    pub fn si(self) -> f64 {
+        self.0
+    }
+}
+
+impl<D: Dim> Default for Q<D> {
+    fn default() -> Self {
+        Q::new(0.0)
+    }
+}
+
+impl<D: Dim> fmt::Debug for Q<D> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{} {}", self.0, D::SI_UNIT)
+    }
+}
+
+impl<D: Dim> Serialize for Q<D> {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_f64(self.0)
+    }
+}
+
+impl<'de, D: Dim> Deserialize<'de> for Q<D> {
+    fn deserialize<De: Deserializer<'de>>(d: De) -> Result<Self, De::Error> {
+        struct V<D>(PhantomData<D>);
+        impl<D: Dim> serde::de::Visitor<'_> for V<D> {
+            type Value = Q<D>;
+            fn expecting(&self, f: &mut fmt::Formatter) -> fmt::Result {
+                write!(f, "a number in {} or a string with a unit", D::SI_UNIT)
+            }
+            fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<Q<D>, E> {
+                Ok(Q::new(v))
+            }
+            fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<Q<D>, E> {
+                Ok(Q::new(v as f64))
+            }
+            fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<Q<D>, E> {
+                Ok(Q::new(v as f64))
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<Q<D>, E> {
+                let q = parse_quantity(v).map_err(E::custom)?;
+                if q.dim != D::DIM {
+                    return Err(E::custom(format!(
+                        "`{v}` has dimension {} but {} (e.g. {}) is expected",
+                        q.dim,
+                        D::DIM,
+                        D::SI_UNIT
+                    )));
+                }
+                Ok(Q::new(q.value))
+            }
+        }
+        d.deserialize_any(V(PhantomData))
+    }
+}
+
+pub type LengthQ = Q<Length>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: f64, b: f64) -> bool {
+        ((a - b) / b).abs() < 1e-12
+    }
+
+    #[test]
+    fn parses_prefixed_and_compound_units() {
+        let q = parse_quantity("140 um").unwrap();
+        assert!(close(q.value, 140e-6) && q.dim == Dimension::LENGTH);
+        let q = parse_quantity("66.9 GPa").unwrap();
+        assert!(close(q.value, 66.9e9));
+        // The paper's heat capacity 0.5 J/(g K) is 500 J/(kg K).
+        let q = parse_quantity("0.5 J/(g K)").unwrap();
+        assert!(close(q.value, 500.0));
+        assert_eq!(q.dim, SpecificHeat::DIM);
+        // The paper's density 8e-12 g/um^3 is 8000 kg/m^3.
+        let q = parse_quantity("8e-12 g/um^3").unwrap();
+        assert!(close(q.value, 8000.0));
+        assert_eq!(q.dim, Density::DIM);
+        let q = parse_quantity("2.9090e-5 W/K").unwrap();
+        assert!(close(q.value, 2.909e-5));
+        let q = parse_quantity("1.5 mm/s").unwrap();
+        assert!(close(q.value, 1.5e-3));
+        let q = parse_quantity("3 min").unwrap();
+        assert!(close(q.value, 180.0));
+    }
+
+    #[test]
+    fn rejects_wrong_dimension_and_unknown_units() {
+        let e = serde_json::from_str::<Q<Length>>("\"3 W\"").unwrap_err();
+        assert!(e.to_string().contains("expected"), "{e}");
+        assert!(parse_quantity("3 furlongs").is_err());
+        assert!(parse_quantity("um").is_err());
+        let q: Q<Length> = serde_json::from_str("2.5e-6").unwrap();
+        assert_eq!(q.si(), 2.5e-6);
+    }
+}
