@@ -144,7 +144,12 @@ pub struct Domain {
 
 impl Domain {
     pub fn boxed(min: [f64; 3], max: [f64; 3], periodic: [bool; 3]) -> Self {
-        Domain { min, max, periodic, excluded: Vec::new() }
+        Domain {
+            min,
+            max,
+            periodic,
+            excluded: Vec::new(),
+        }
     }
     pub fn size(&self) -> [f64; 3] {
         [0, 1, 2].map(|a| self.max[a] - self.min[a])
@@ -157,9 +162,13 @@ impl Domain {
 /// The geometry of one body.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum BodyShape {
-    Sphere { radius: f64 },
+    Sphere {
+        radius: f64,
+    },
     /// Index into the packing's clump library.
-    Clump { index: usize },
+    Clump {
+        index: usize,
+    },
 }
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -222,12 +231,21 @@ pub fn rotate(q: [f64; 4], v: [f64; 3]) -> [f64; 3] {
 }
 
 fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
 }
 
 impl Packing {
     pub fn new(domain: Domain) -> Self {
-        Packing { domain, bodies: Vec::new(), library: None, attributes: IndexMap::new() }
+        Packing {
+            domain,
+            bodies: Vec::new(),
+            library: None,
+            attributes: IndexMap::new(),
+        }
     }
 
     /// Every sphere of every body in world coordinates (clumps expanded).
@@ -235,12 +253,17 @@ impl Packing {
         let mut out = Vec::with_capacity(self.bodies.len());
         for (b, body) in self.bodies.iter().enumerate() {
             match &body.shape {
-                BodyShape::Sphere { radius } => {
-                    out.push(WorldSphere { center: body.position, radius: *radius, body: b })
-                }
+                BodyShape::Sphere { radius } => out.push(WorldSphere {
+                    center: body.position,
+                    radius: *radius,
+                    body: b,
+                }),
                 BodyShape::Clump { index } => {
-                    let clump = &self.library.as_ref().expect("clump body without library").clumps
-                        [*index];
+                    let clump = &self
+                        .library
+                        .as_ref()
+                        .expect("clump body without library")
+                        .clumps[*index];
                     for s in &clump.spheres {
                         let r = rotate(body.orientation, s.offset);
                         out.push(WorldSphere {
@@ -259,9 +282,11 @@ impl Packing {
     pub fn body_volume(&self, body: &Body) -> f64 {
         match &body.shape {
             BodyShape::Sphere { radius } => 4.0 / 3.0 * PI * radius.powi(3),
-            BodyShape::Clump { index } => {
-                self.library.as_ref().map(|l| l.clumps[*index].volume).unwrap_or(0.0)
-            }
+            BodyShape::Clump { index } => self
+                .library
+                .as_ref()
+                .map(|l| l.clumps[*index].volume)
+                .unwrap_or(0.0),
         }
     }
 
@@ -338,18 +363,33 @@ pub struct Table {
 
 impl Table {
     pub fn new(name: impl Into<String>) -> Self {
-        Table { name: name.into(), columns: Vec::new() }
+        Table {
+            name: name.into(),
+            columns: Vec::new(),
+        }
     }
     pub fn with_f64(mut self, name: &str, unit: &str, values: Vec<f64>) -> Self {
-        self.columns.push(Column { name: name.into(), unit: unit.into(), data: ColumnData::F64(values) });
+        self.columns.push(Column {
+            name: name.into(),
+            unit: unit.into(),
+            data: ColumnData::F64(values),
+        });
         self
     }
     pub fn with_i64(mut self, name: &str, unit: &str, values: Vec<i64>) -> Self {
-        self.columns.push(Column { name: name.into(), unit: unit.into(), data: ColumnData::I64(values) });
+        self.columns.push(Column {
+            name: name.into(),
+            unit: unit.into(),
+            data: ColumnData::I64(values),
+        });
         self
     }
     pub fn with_str(mut self, name: &str, values: Vec<String>) -> Self {
-        self.columns.push(Column { name: name.into(), unit: String::new(), data: ColumnData::Str(values) });
+        self.columns.push(Column {
+            name: name.into(),
+            unit: String::new(),
+            data: ColumnData::Str(values),
+        });
         self
     }
     pub fn rows(&self) -> usize {
@@ -495,7 +535,11 @@ pub struct ArtifactMeta {
 
 impl ArtifactMeta {
     pub fn of(kind: ArtifactKind) -> Self {
-        ArtifactMeta { kind, grid: None, count_estimate: 0 }
+        ArtifactMeta {
+            kind,
+            grid: None,
+            count_estimate: 0,
+        }
     }
 }
 

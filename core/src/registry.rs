@@ -16,7 +16,12 @@ pub trait Exporter: Send + Sync {
     fn accepts(&self, kind: ArtifactKind) -> bool;
     fn doc(&self) -> &'static str;
     /// Writes atomically: a crash never leaves a partial file at `path`.
-    fn write(&self, artifact: &Artifact, path: &Path, provenance: &Provenance) -> Result<(), String>;
+    fn write(
+        &self,
+        artifact: &Artifact,
+        path: &Path,
+        provenance: &Provenance,
+    ) -> Result<(), String>;
 }
 
 /// A stage with where it came from (`built-in` or a plugin library path).
@@ -51,9 +56,15 @@ impl Registry {
     /// bug that must not be resolved silently by load order.
     pub fn add_dyn_stage(&mut self, stage: Arc<dyn Stage>) {
         let id = stage.info().id.to_string();
-        let origin = self.origin.clone().unwrap_or_else(|| "built-in".to_string());
+        let origin = self
+            .origin
+            .clone()
+            .unwrap_or_else(|| "built-in".to_string());
         if let Some(prev) = self.stages.get(&id) {
-            panic!("stage `{id}` registered twice ({} and {origin})", prev.origin);
+            panic!(
+                "stage `{id}` registered twice ({} and {origin})",
+                prev.origin
+            );
         }
         self.stages.insert(id, Registered { stage, origin });
     }
@@ -62,7 +73,10 @@ impl Registry {
     pub fn try_add_dyn_stage(&mut self, stage: Arc<dyn Stage>) -> Result<(), String> {
         let id = stage.info().id;
         if let Some(prev) = self.stages.get(id) {
-            return Err(format!("stage `{id}` is already provided by {}", prev.origin));
+            return Err(format!(
+                "stage `{id}` is already provided by {}",
+                prev.origin
+            ));
         }
         self.add_dyn_stage(stage);
         Ok(())
@@ -118,7 +132,10 @@ impl Registry {
                 .unwrap_or_default();
             for p in &info.params {
                 if !keys.contains(&p.name) {
-                    return Err(format!("{}: documented param `{}` is not a field", info.id, p.name));
+                    return Err(format!(
+                        "{}: documented param `{}` is not a field",
+                        info.id, p.name
+                    ));
                 }
             }
             for k in &keys {

@@ -35,10 +35,20 @@ pub struct PortSpec {
 
 impl PortSpec {
     pub const fn new(name: &'static str, kind: ArtifactKind, doc: &'static str) -> Self {
-        PortSpec { name, kind, doc, optional: false }
+        PortSpec {
+            name,
+            kind,
+            doc,
+            optional: false,
+        }
     }
     pub const fn optional(name: &'static str, kind: ArtifactKind, doc: &'static str) -> Self {
-        PortSpec { name, kind, doc, optional: true }
+        PortSpec {
+            name,
+            kind,
+            doc,
+            optional: true,
+        }
     }
 }
 
@@ -96,10 +106,16 @@ pub enum StageError {
 
 impl StageError {
     pub fn param(key: &str, message: impl Into<String>) -> Self {
-        StageError::InvalidParam { key: key.to_string(), message: message.into() }
+        StageError::InvalidParam {
+            key: key.to_string(),
+            message: message.into(),
+        }
     }
     pub fn input(port: &str, message: impl Into<String>) -> Self {
-        StageError::InvalidInput { port: port.to_string(), message: message.into() }
+        StageError::InvalidInput {
+            port: port.to_string(),
+            message: message.into(),
+        }
     }
     pub fn failed(message: impl Into<String>) -> Self {
         StageError::Failed(message.into())
@@ -199,7 +215,8 @@ pub trait Stage: Send + Sync {
     fn default_params(&self) -> serde_json::Value;
     /// Parses and validates parameters; returns the canonical JSON (defaults filled in, units
     /// converted to SI), which is what the cache key hashes.
-    fn normalize_params(&self, params: &serde_json::Value) -> Result<serde_json::Value, StageError>;
+    fn normalize_params(&self, params: &serde_json::Value)
+        -> Result<serde_json::Value, StageError>;
     fn preflight(
         &self,
         params: &serde_json::Value,
@@ -219,8 +236,17 @@ pub trait TypedStage: Send + Sync + 'static {
     type Params: Serialize + DeserializeOwned + Default + Send + Sync;
     fn info(&self) -> StageInfo;
     /// Checks parameter values and input shapes without allocating anything large.
-    fn preflight(&self, params: &Self::Params, inputs: &InputMetas) -> Result<Preflight, StageError>;
-    fn run(&self, params: &Self::Params, inputs: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError>;
+    fn preflight(
+        &self,
+        params: &Self::Params,
+        inputs: &InputMetas,
+    ) -> Result<Preflight, StageError>;
+    fn run(
+        &self,
+        params: &Self::Params,
+        inputs: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError>;
 }
 
 /// Adapts a [`TypedStage`] to [`Stage`].
@@ -245,7 +271,10 @@ impl<T: TypedStage> Typed<T> {
             } else {
                 path
             };
-            StageError::InvalidParam { key, message: inner }
+            StageError::InvalidParam {
+                key,
+                message: inner,
+            }
         })
     }
 }
@@ -263,15 +292,27 @@ impl<T: TypedStage> Stage for Typed<T> {
     fn default_params(&self) -> serde_json::Value {
         serde_json::to_value(T::Params::default()).expect("params serialize")
     }
-    fn normalize_params(&self, params: &serde_json::Value) -> Result<serde_json::Value, StageError> {
+    fn normalize_params(
+        &self,
+        params: &serde_json::Value,
+    ) -> Result<serde_json::Value, StageError> {
         let p = self.parse(params)?;
         serde_json::to_value(p).map_err(|e| StageError::failed(e.to_string()))
     }
-    fn preflight(&self, params: &serde_json::Value, inputs: &InputMetas) -> Result<Preflight, StageError> {
+    fn preflight(
+        &self,
+        params: &serde_json::Value,
+        inputs: &InputMetas,
+    ) -> Result<Preflight, StageError> {
         let p = self.parse(params)?;
         self.inner.preflight(&p, inputs)
     }
-    fn run(&self, params: &serde_json::Value, inputs: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
+    fn run(
+        &self,
+        params: &serde_json::Value,
+        inputs: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
         let p = self.parse(params)?;
         self.inner.run(&p, inputs, ctx)
     }

@@ -157,7 +157,9 @@ fn parse_product(t: &[String], pos: &mut usize, expr: &str) -> Result<(f64, Dime
     while *pos < t.len() && t[*pos] != ")" {
         if t[*pos] == "/" {
             if sign == -1 {
-                return Err(format!("ambiguous unit `{expr}`: use parentheses after `/`"));
+                return Err(format!(
+                    "ambiguous unit `{expr}`: use parentheses after `/`"
+                ));
             }
             sign = -1;
             *pos += 1;
@@ -204,7 +206,8 @@ pub fn parse_quantity(text: &str) -> Result<Quantity, String> {
                 || *c == '-'
                 || *c == '+'
                 || ((*c == 'e' || *c == 'E')
-                    && s[i + 1..].starts_with(|n: char| n.is_ascii_digit() || n == '-' || n == '+')))
+                    && s[i + 1..]
+                        .starts_with(|n: char| n.is_ascii_digit() || n == '-' || n == '+')))
         })
         .map(|(i, _)| i)
         .unwrap_or(s.len());
@@ -215,10 +218,16 @@ pub fn parse_quantity(text: &str) -> Result<Quantity, String> {
         .map_err(|_| format!("`{text}` does not start with a number"))?;
     let unit = unit.trim();
     if unit.is_empty() {
-        return Ok(Quantity { value, dim: Dimension::NONE });
+        return Ok(Quantity {
+            value,
+            dim: Dimension::NONE,
+        });
     }
     let (f, dim) = parse_unit(unit)?;
-    Ok(Quantity { value: value * f, dim })
+    Ok(Quantity {
+        value: value * f,
+        dim,
+    })
 }
 
 /// Marker for the dimension a [`Q`] must have.

@@ -1,0 +1,2 @@
+use grainpipe_core::Registry;
+pub fn register(_r: &mut Registry) {}
