@@ -1,1 +1,202 @@
-fn main() {}
+//! `pipe`: run, validate, list and describe grainpipe pipelines.
+//!
+//! Exit codes: 0 success, 1 a stage failed or an output could not be written, 2 the input
+//! (YAML, parameters, references, files) is wrong; nothing heavy has run in that case.
+
+use clap::{Parser, Subcommand};
+use grainpipe_cli::observe::{CountingAllocator, TerminalObserver};
+use grainpipe_cli::{available_memory, builtin_registry, describe};
+use grainpipe_core::engine::{self, PlanOptions, RunOptions};
+use grainpipe_core::pipeline::{PipelineDoc, PipelineError};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[global_allocator]
+static ALLOC: CountingAllocator = CountingAllocator;
+
+#[derive(Parser)]
+#[command(name = "pipe", version, about = "grainpipe: YAML scene -> validated digital twin of a granular material")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(clap::Args)]
+struct PipelineArgs {
+    /// The pipeline YAML file.
+    file: PathBuf,
+    /// Override a parameter: `--set step.key=value` (value read as YAML, units allowed).
+    #[arg(long = "set", value_name = "STEP.KEY=VALUE")]
+    overrides: Vec<String>,
+    /// Override the pipeline's seed.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Compute this step even if no export needs it (repeatable).
+    #[arg(long = "target", value_name = "STEP")]
+    targets: Vec<String>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Check, then run a pipeline (only the steps its exports or targets need).
+    Run {
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+        /// Recompute everything; neither read nor write the cache.
+        #[arg(long)]
+        no_cache: bool,
+        /// Cache directory.
+        #[arg(long, default_value = ".grainpipe-cache")]
+        cache_dir: PathBuf,
+        /// No progress bars or step messages (warnings and errors still print).
+        #[arg(long, short)]
+        quiet: bool,
+        /// Worker threads (default: all cores). Results do not depend on it.
+        #[arg(long)]
+        threads: Option<usize>,
+    },
+    /// Check a pipeline (YAML, stages, parameters, wiring, memory) without running it.
+    Validate {
+        #[command(flatten)]
+        pipeline: PipelineArgs,
+    },
+    /// List every stage and export format.
+    List {
+        /// Markdown table (used for the README).
+        #[arg(long)]
+        markdown: bool,
+    },
+    /// Describe a stage (parameters, defaults, units, ports) or an export format.
+    Describe { id: String },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let registry = builtin_registry();
+    match cli.command {
+        Command::List { markdown } => {
+            if markdown {
+                print!("{}", describe::list_markdown(&registry));
+            } else {
+                print!("{}", describe::list_text(&registry));
+            }
+            ExitCode::SUCCESS
+        }
+        Command::Describe { id } => match describe::describe(&registry, &id) {
+            Ok(text) => {
+                print!("{text}");
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("error: {e}");
+                ExitCode::from(2)
+            }
+        },
+        Command::Validate { pipeline } => {
+            let (doc, plan) = match load_and_plan(&pipeline, &registry) {
+                Ok(x) => x,
+                Err(e) => return report(&e),
+            };
+            println!("{}: ok ({} of {} steps needed)", doc.file.display(), plan.order.len(), doc.steps.len());
+            for &i in &plan.order {
+                let s = plan.steps[i].as_ref().expect("planned");
+                println!(
+                    "  {:16} {:22} ~{}",
+                    s.id,
+                    s.stage.info().id,
+                    engine::human_bytes(s.preflight.memory_bytes)
+                );
+            }
+            for e in &plan.exports {
+                println!("  -> {} ({})", e.path.display(), e.exporter.name());
+            }
+            println!("estimated memory: {}", engine::human_bytes(plan.memory_bytes));
+            ExitCode::SUCCESS
+        }
+        Command::Run { pipeline, no_cache, cache_dir, quiet, threads } => {
+            if let Some(t) = threads {
+                if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(t).build_global() {
+                    eprintln!("error: cannot set {t} threads: {e}");
+                    return ExitCode::from(2);
+                }
+            }
+            let (doc, plan) = match load_and_plan(&pipeline, &registry) {
+                Ok(x) => x,
+                Err(e) => return report(&e),
+            };
+            let cancel = Arc::new(AtomicBool::new(false));
+            let flag = cancel.clone();
+            // First Ctrl-C asks stages to stop at their next progress report; a second one exits.
+            let _ = ctrlc::set_handler(move || {
+                if flag.swap(true, Ordering::SeqCst) {
+                    std::process::exit(130);
+                }
+                eprintln!("\ninterrupted: stopping at the next checkpoint (Ctrl-C again to abort)");
+            });
+            let mut observer = TerminalObserver::new(quiet, cancel);
+            let opts = RunOptions { cache_dir: (!no_cache).then_some(cache_dir) };
+            let result = engine::execute(&doc, &plan, &opts, &mut observer);
+            if !quiet || result.is_err() {
+                eprint!("\n{}", observer.table());
+            }
+            match result {
+                Ok(_) => ExitCode::SUCCESS,
+                Err(e) => report(&e),
+            }
+        }
+    }
+}
+
+fn load_and_plan(
+    args: &PipelineArgs,
+    registry: &grainpipe_core::Registry,
+) -> Result<(PipelineDoc, engine::Plan), PipelineError> {
+    let mut doc = PipelineDoc::load(&args.file)?;
+    for o in &args.overrides {
+        doc.apply_override(o)?;
+    }
+    if let Some(s) = args.seed {
+        doc.seed = s;
+    }
+    let opts = PlanOptions { targets: args.targets.clone(), memory_limit: available_memory() };
+    let plan = engine::plan(&doc, registry, &opts)?;
+    Ok((doc, plan))
+}
+
+#[derive(Debug, thiserror::Error, miette::Diagnostic)]
+#[error("{message}")]
+struct YamlDiagnostic {
+    message: String,
+    #[source_code]
+    src: miette::NamedSource<String>,
+    #[label("here")]
+    span: miette::SourceSpan,
+    #[help]
+    help: Option<String>,
+}
+
+/// Prints a pipeline error with its file:line:col and the YAML snippet, and gives its exit code.
+fn report(e: &PipelineError) -> ExitCode {
+    let source = std::fs::read_to_string(&e.file).ok();
+    match (e.loc, source) {
+        (Some(loc), Some(src)) if loc.offset < src.len() => {
+            let d = YamlDiagnostic {
+                message: e.message.clone(),
+                src: miette::NamedSource::new(e.file.display().to_string(), src),
+                span: (loc.offset, loc.len).into(),
+                help: e.help.clone(),
+            };
+            let handler = miette::GraphicalReportHandler::new_themed(miette::GraphicalTheme::unicode_nocolor())
+                .with_context_lines(1);
+            let mut out = String::new();
+            match handler.render_report(&mut out, &d) {
+                Ok(()) => eprint!("{out}"),
+                Err(_) => eprintln!("error: {e}"),
+            }
+        }
+        _ => eprintln!("error: {e}"),
+    }
+    ExitCode::from(e.exit_code() as u8)
+}

@@ -531,6 +531,10 @@ pub struct ArtifactMeta {
     pub grid: Option<Grid>,
     /// Estimated number of items (bodies, contacts, rows); 0 when unknown.
     pub count_estimate: u64,
+    /// The box of a packing (min, max corners) when known before running.
+    pub domain_box: Option<([f64; 3], [f64; 3])>,
+    /// A typical body size (mean diameter) [m] when known before running.
+    pub length_scale: Option<f64>,
 }
 
 impl ArtifactMeta {
@@ -539,6 +543,8 @@ impl ArtifactMeta {
             kind,
             grid: None,
             count_estimate: 0,
+            domain_box: None,
+            length_scale: None,
         }
     }
 }

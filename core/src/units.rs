@@ -319,9 +319,8 @@ impl<'de, D: Dim> Deserialize<'de> for Q<D> {
                 let q = parse_quantity(v).map_err(E::custom)?;
                 if q.dim != D::DIM {
                     return Err(E::custom(format!(
-                        "`{v}` has dimension {} but {} (e.g. {}) is expected",
+                        "`{v}` has dimension {} but this parameter takes {}",
                         q.dim,
-                        D::DIM,
                         D::SI_UNIT
                     )));
                 }
@@ -367,7 +366,7 @@ mod tests {
     #[test]
     fn rejects_wrong_dimension_and_unknown_units() {
         let e = serde_json::from_str::<Q<Length>>("\"3 W\"").unwrap_err();
-        assert!(e.to_string().contains("expected"), "{e}");
+        assert!(e.to_string().contains("takes m"), "{e}");
         assert!(parse_quantity("3 furlongs").is_err());
         assert!(parse_quantity("um").is_err());
         let q: Q<Length> = serde_json::from_str("2.5e-6").unwrap();
