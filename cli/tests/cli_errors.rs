@@ -156,3 +156,15 @@ fn describe_and_list_show_every_parameter_with_units() {
     assert_eq!(code, 2);
     assert!(err.contains("did you mean `packing.rsa`"));
 }
+
+#[test]
+fn readme_stage_table_is_generated_from_the_registry() {
+    let readme = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+    let begin = readme.find("<!-- stages:begin -->\n").expect("begin marker") + "<!-- stages:begin -->\n".len();
+    let end = readme.find("<!-- stages:end -->").expect("end marker");
+    let expected = grainpipe_cli::describe::list_markdown(&grainpipe_cli::builtin_registry());
+    assert!(
+        readme[begin..end] == expected,
+        "README.md's stage table is out of date: run `make readme-stages`"
+    );
+}

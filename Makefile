@@ -1,0 +1,69 @@
+# grainpipe — the two commands a fresh Debian machine needs:
+#   make demo   build and run the demo pipelines (outputs under out/)
+#   make test   install what is missing, then format check, clippy, all tests, interop tests
+# `make bench` runs the benchmarks recorded in BENCHMARKS.md.
+
+SHELL := /bin/bash
+CARGO ?= cargo
+VENV ?= .venv
+PYTHON ?= python3
+APT_PACKAGES := libhdf5-dev libnetcdf-dev pkg-config python3-venv
+PIPE := ./target/release/pipe
+DEMO_PIPELINES := pipelines/spheres.yaml
+
+.PHONY: all sysdeps pydeps build demo test lint rust-test interop bench readme-stages clean
+
+all: build
+
+# System libraries for the HDF5 and NetCDF writers; installed only when missing.
+sysdeps:
+	@missing=""; \
+	for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing:$$missing"; \
+	  sudo=""; [ "$$(id -u)" = 0 ] || sudo=sudo; \
+	  $$sudo apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$sudo apt-get install -y -qq $$missing; \
+	fi
+
+# Python packages for the interop tests (pyvista, h5py, netCDF4) in a local venv.
+$(VENV)/.installed: tests/interop/requirements.txt
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install -q --upgrade pip
+	$(VENV)/bin/pip install -q -r tests/interop/requirements.txt
+	touch $@
+
+pydeps: $(VENV)/.installed
+
+build: sysdeps
+	$(CARGO) build --release -p grainpipe-cli
+
+demo: build
+	@for p in $(DEMO_PIPELINES); do echo "== $(PIPE) run $$p"; $(PIPE) run $$p || exit $$?; done
+	@echo "outputs are under out/ (open .vti/.vtp/.pvd/.vtkhdf in ParaView or pyvista)"
+
+lint: sysdeps
+	$(CARGO) fmt --all --check
+	$(CARGO) clippy --workspace --all-targets -- -D warnings
+
+rust-test: sysdeps
+	$(CARGO) test --workspace
+
+interop: sysdeps pydeps build
+	PIPE=$(PIPE) $(VENV)/bin/python -m pytest -q tests/interop
+
+test: lint rust-test interop
+
+bench: build
+	@for d in plugins/*/examples/bench.rs; do \
+	  crate=grainpipe-$$(basename $$(dirname $$(dirname $$d))); \
+	  echo "== $$crate"; $(CARGO) run --release -q -p $$crate --example bench || exit $$?; \
+	done
+
+# Regenerates the stage table in README.md from the registry.
+readme-stages: build
+	@$(PIPE) list --markdown > /tmp/grainpipe-stages.md
+	@awk 'BEGIN{skip=0} /<!-- stages:begin -->/{print; system("cat /tmp/grainpipe-stages.md"); skip=1; next} /<!-- stages:end -->/{skip=0} !skip{print}' README.md > README.md.tmp && mv README.md.tmp README.md
+
+clean:
+	$(CARGO) clean
+	rm -rf out .grainpipe-cache
