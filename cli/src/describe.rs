@@ -16,15 +16,35 @@ fn summary(doc: &str) -> &str {
 /// One line per stage (id, version, origin, summary) and the export formats.
 pub fn list_text(r: &Registry) -> String {
     let mut s = String::new();
-    let width = r.stages().iter().map(|x| x.stage.info().id.len()).max().unwrap_or(10);
+    let width = r
+        .stages()
+        .iter()
+        .map(|x| x.stage.info().id.len())
+        .max()
+        .unwrap_or(10);
     writeln!(s, "Stages ({}):", r.stages().len()).unwrap();
     for x in r.stages() {
         let i = x.stage.info();
-        writeln!(s, "  {:width$}  {:7}  {}  [{}]", i.id, i.version, summary(i.doc), x.origin).unwrap();
+        writeln!(
+            s,
+            "  {:width$}  {:7}  {}  [{}]",
+            i.id,
+            i.version,
+            summary(i.doc),
+            x.origin
+        )
+        .unwrap();
     }
     writeln!(s, "\nExport formats:").unwrap();
     for e in r.exporters() {
-        writeln!(s, "  {:8} .{:14} {}", e.name(), e.extensions().join(" ."), e.doc()).unwrap();
+        writeln!(
+            s,
+            "  {:8} .{:14} {}",
+            e.name(),
+            e.extensions().join(" ."),
+            e.doc()
+        )
+        .unwrap();
     }
     s.push_str("\n`pipe describe <stage id>` shows parameters, defaults, units and ports.\n");
     s
@@ -32,14 +52,19 @@ pub fn list_text(r: &Registry) -> String {
 
 /// The same as a Markdown table (for the README).
 pub fn list_markdown(r: &Registry) -> String {
-    let mut s = String::from("| stage | version | inputs | outputs | what it does |\n|---|---|---|---|---|\n");
+    let mut s = String::from(
+        "| stage | version | inputs | outputs | what it does |\n|---|---|---|---|---|\n",
+    );
     for x in r.stages() {
         let i = x.stage.info();
         let ports = |p: &[grainpipe_core::PortSpec]| {
             if p.is_empty() {
                 "—".to_string()
             } else {
-                p.iter().map(|p| format!("`{}` ({})", p.name, p.kind)).collect::<Vec<_>>().join(", ")
+                p.iter()
+                    .map(|p| format!("`{}` ({})", p.name, p.kind))
+                    .collect::<Vec<_>>()
+                    .join(", ")
             }
         };
         writeln!(
@@ -55,7 +80,18 @@ pub fn list_markdown(r: &Registry) -> String {
     }
     s.push_str("\n| export format | extensions | takes |\n|---|---|---|\n");
     for e in r.exporters() {
-        writeln!(s, "| `{}` | {} | {} |", e.name(), e.extensions().iter().map(|x| format!("`.{x}`")).collect::<Vec<_>>().join(" "), e.doc()).unwrap();
+        writeln!(
+            s,
+            "| `{}` | {} | {} |",
+            e.name(),
+            e.extensions()
+                .iter()
+                .map(|x| format!("`.{x}`"))
+                .collect::<Vec<_>>()
+                .join(" "),
+            e.doc()
+        )
+        .unwrap();
     }
     s
 }
@@ -66,13 +102,24 @@ fn describe_stage(x: &Registered) -> String {
     let mut s = String::new();
     writeln!(s, "{} {}  ({})\n", i.id, i.version, x.origin).unwrap();
     writeln!(s, "{}\n", textwrap(i.doc, 90)).unwrap();
-    writeln!(s, "Parameters (YAML `with:`; numbers are SI, strings may carry units):").unwrap();
+    writeln!(
+        s,
+        "Parameters (YAML `with:`; numbers are SI, strings may carry units):"
+    )
+    .unwrap();
     if i.params.is_empty() {
         writeln!(s, "  none").unwrap();
     }
     for p in &i.params {
-        let d = defaults.get(p.name).map(|v| v.to_string()).unwrap_or_default();
-        let unit = if p.unit.is_empty() || p.unit == "1" { String::new() } else { format!(" [{}]", p.unit) };
+        let d = defaults
+            .get(p.name)
+            .map(|v| v.to_string())
+            .unwrap_or_default();
+        let unit = if p.unit.is_empty() || p.unit == "1" {
+            String::new()
+        } else {
+            format!(" [{}]", p.unit)
+        };
         writeln!(s, "  {}: {}{}  (default {})", p.name, p.ty, unit, d).unwrap();
         writeln!(s, "      {}", p.doc).unwrap();
     }
@@ -115,8 +162,18 @@ pub fn describe(r: &Registry, id: &str) -> Result<String, String> {
         return Ok(describe_stage(x));
     }
     if let Some(e) = r.exporters().iter().find(|e| e.name() == id) {
-        return Ok(format!("export format `{}` (.{})\n\n{}\n", e.name(), e.extensions().join(", ."), e.doc()));
+        return Ok(format!(
+            "export format `{}` (.{})\n\n{}\n",
+            e.name(),
+            e.extensions().join(", ."),
+            e.doc()
+        ));
     }
-    let hint = r.suggest_stage(id).map(|s| format!("; did you mean `{s}`?")).unwrap_or_default();
-    Err(format!("no stage or format `{id}`{hint} (`pipe list` shows all)"))
+    let hint = r
+        .suggest_stage(id)
+        .map(|s| format!("; did you mean `{s}`?"))
+        .unwrap_or_default();
+    Err(format!(
+        "no stage or format `{id}`{hint} (`pipe list` shows all)"
+    ))
 }

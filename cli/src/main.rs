@@ -5,7 +5,7 @@
 
 use clap::{Parser, Subcommand};
 use grainpipe_cli::observe::{CountingAllocator, TerminalObserver};
-use grainpipe_cli::{available_memory, builtin_registry, describe};
+use grainpipe_cli::{available_memory, builtin_registry, describe, PluginLoader};
 use grainpipe_core::engine::{self, PlanOptions, RunOptions};
 use grainpipe_core::pipeline::{PipelineDoc, PipelineError};
 use std::path::PathBuf;
@@ -17,8 +17,16 @@ use std::sync::Arc;
 static ALLOC: CountingAllocator = CountingAllocator;
 
 #[derive(Parser)]
-#[command(name = "pipe", version, about = "grainpipe: YAML scene -> validated digital twin of a granular material")]
+#[command(
+    name = "pipe",
+    version,
+    about = "grainpipe: YAML scene -> validated digital twin of a granular material"
+)]
 struct Cli {
+    /// Load third-party stages from the shared libraries in DIR (repeatable; also
+    /// GRAINPIPE_PLUGIN_PATH and `plugins:` in the pipeline).
+    #[arg(long = "plugin-dir", value_name = "DIR", global = true)]
+    plugin_dirs: Vec<PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
@@ -74,7 +82,14 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    let registry = builtin_registry();
+    let mut registry = builtin_registry();
+    let mut loader = PluginLoader::default();
+    let mut locations = cli.plugin_dirs.clone();
+    locations.extend(grainpipe_core::plugin_host::env_locations());
+    if let Err(e) = loader.load(&mut registry, &locations) {
+        eprintln!("error: {e}");
+        return ExitCode::from(2);
+    }
     match cli.command {
         Command::List { markdown } => {
             if markdown {
@@ -95,11 +110,16 @@ fn main() -> ExitCode {
             }
         },
         Command::Validate { pipeline } => {
-            let (doc, plan) = match load_and_plan(&pipeline, &registry) {
+            let (doc, plan) = match load_and_plan(&pipeline, &mut registry, &mut loader) {
                 Ok(x) => x,
                 Err(e) => return report(&e),
             };
-            println!("{}: ok ({} of {} steps needed)", doc.file.display(), plan.order.len(), doc.steps.len());
+            println!(
+                "{}: ok ({} of {} steps needed)",
+                doc.file.display(),
+                plan.order.len(),
+                doc.steps.len()
+            );
             for &i in &plan.order {
                 let s = plan.steps[i].as_ref().expect("planned");
                 println!(
@@ -112,17 +132,29 @@ fn main() -> ExitCode {
             for e in &plan.exports {
                 println!("  -> {} ({})", e.path.display(), e.exporter.name());
             }
-            println!("estimated memory: {}", engine::human_bytes(plan.memory_bytes));
+            println!(
+                "estimated memory: {}",
+                engine::human_bytes(plan.memory_bytes)
+            );
             ExitCode::SUCCESS
         }
-        Command::Run { pipeline, no_cache, cache_dir, quiet, threads } => {
+        Command::Run {
+            pipeline,
+            no_cache,
+            cache_dir,
+            quiet,
+            threads,
+        } => {
             if let Some(t) = threads {
-                if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(t).build_global() {
+                if let Err(e) = rayon::ThreadPoolBuilder::new()
+                    .num_threads(t)
+                    .build_global()
+                {
                     eprintln!("error: cannot set {t} threads: {e}");
                     return ExitCode::from(2);
                 }
             }
-            let (doc, plan) = match load_and_plan(&pipeline, &registry) {
+            let (doc, plan) = match load_and_plan(&pipeline, &mut registry, &mut loader) {
                 Ok(x) => x,
                 Err(e) => return report(&e),
             };
@@ -136,7 +168,9 @@ fn main() -> ExitCode {
                 eprintln!("\ninterrupted: stopping at the next checkpoint (Ctrl-C again to abort)");
             });
             let mut observer = TerminalObserver::new(quiet, cancel);
-            let opts = RunOptions { cache_dir: (!no_cache).then_some(cache_dir) };
+            let opts = RunOptions {
+                cache_dir: (!no_cache).then_some(cache_dir),
+            };
             let result = engine::execute(&doc, &plan, &opts, &mut observer);
             if !quiet || result.is_err() {
                 eprint!("\n{}", observer.table());
@@ -151,16 +185,21 @@ fn main() -> ExitCode {
 
 fn load_and_plan(
     args: &PipelineArgs,
-    registry: &grainpipe_core::Registry,
+    registry: &mut grainpipe_core::Registry,
+    loader: &mut PluginLoader,
 ) -> Result<(PipelineDoc, engine::Plan), PipelineError> {
     let mut doc = PipelineDoc::load(&args.file)?;
+    loader.load_for(registry, &doc)?;
     for o in &args.overrides {
         doc.apply_override(o)?;
     }
     if let Some(s) = args.seed {
         doc.seed = s;
     }
-    let opts = PlanOptions { targets: args.targets.clone(), memory_limit: available_memory() };
+    let opts = PlanOptions {
+        targets: args.targets.clone(),
+        memory_limit: available_memory(),
+    };
     let plan = engine::plan(&doc, registry, &opts)?;
     Ok((doc, plan))
 }
@@ -188,8 +227,10 @@ fn report(e: &PipelineError) -> ExitCode {
                 span: (loc.offset, loc.len).into(),
                 help: e.help.clone(),
             };
-            let handler = miette::GraphicalReportHandler::new_themed(miette::GraphicalTheme::unicode_nocolor())
-                .with_context_lines(1);
+            let handler = miette::GraphicalReportHandler::new_themed(
+                miette::GraphicalTheme::unicode_nocolor(),
+            )
+            .with_context_lines(1);
             let mut out = String::new();
             match handler.render_report(&mut out, &d) {
                 Ok(()) => eprint!("{out}"),

@@ -34,7 +34,8 @@ unsafe impl GlobalAlloc for CountingAllocator {
         let p = unsafe { System.realloc(ptr, layout, new_size) };
         if !p.is_null() {
             if new_size > layout.size() {
-                let now = LIVE.fetch_add(new_size - layout.size(), Ordering::Relaxed) + new_size - layout.size();
+                let now = LIVE.fetch_add(new_size - layout.size(), Ordering::Relaxed) + new_size
+                    - layout.size();
                 PEAK.fetch_max(now, Ordering::Relaxed);
             } else {
                 LIVE.fetch_sub(layout.size() - new_size, Ordering::Relaxed);
@@ -109,12 +110,20 @@ pub struct TerminalObserver {
 
 impl TerminalObserver {
     pub fn new(quiet: bool, cancel: Arc<AtomicBool>) -> Self {
-        TerminalObserver { quiet, cancel, rows: Vec::new(), base: 0 }
+        TerminalObserver {
+            quiet,
+            cancel,
+            rows: Vec::new(),
+            base: 0,
+        }
     }
 
     /// The end-of-run table.
     pub fn table(&self) -> String {
-        let mut s = format!("{:16} {:22} {:>10} {:>12}  {}\n", "step", "stage", "wall [s]", "peak mem", "");
+        let mut s = format!(
+            "{:16} {:22} {:>10} {:>12}  {}\n",
+            "step", "stage", "wall [s]", "peak mem", ""
+        );
         for r in &self.rows {
             s.push_str(&format!(
                 "{:16} {:22} {:>10.3} {:>12}  {}\n",
@@ -134,15 +143,22 @@ impl Observer for TerminalObserver {
         self.base = reset_peak();
         let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
         bar.set_style(
-            ProgressStyle::with_template("{prefix:>16} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
-                .expect("valid template")
-                .progress_chars("=> "),
+            ProgressStyle::with_template(
+                "{prefix:>16} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}",
+            )
+            .expect("valid template")
+            .progress_chars("=> "),
         );
         bar.set_prefix(step.id.clone());
         if !self.quiet {
             eprintln!("running {} ({})", step.id, step.stage.info().id);
         }
-        Box::new(StepReporter { bar, start: Instant::now(), quiet: self.quiet, cancel: self.cancel.clone() })
+        Box::new(StepReporter {
+            bar,
+            start: Instant::now(),
+            quiet: self.quiet,
+            cancel: self.cancel.clone(),
+        })
     }
 
     fn step_finished(&mut self, step: &PlannedStep, stats: &StepStats) {

@@ -22,9 +22,15 @@ fn expect_error(yaml: &str, location: &str, needles: &[&str]) {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("p.yaml"), yaml).unwrap();
     for cmd in ["validate", "run"] {
-        let (code, _, err) = pipe(&[cmd, "p.yaml", "--quiet"][..if cmd == "run" { 3 } else { 2 }], dir.path());
+        let (code, _, err) = pipe(
+            &[cmd, "p.yaml", "--quiet"][..if cmd == "run" { 3 } else { 2 }],
+            dir.path(),
+        );
         assert_eq!(code, 2, "{cmd}: exit code for\n{yaml}\n{err}");
-        assert!(err.contains(&format!("p.yaml:{location}")), "{cmd}: no `p.yaml:{location}` in\n{err}");
+        assert!(
+            err.contains(&format!("p.yaml:{location}")),
+            "{cmd}: no `p.yaml:{location}` in\n{err}"
+        );
         for n in needles {
             assert!(err.contains(n), "{cmd}: no `{n}` in\n{err}");
         }
@@ -36,7 +42,11 @@ fn expect_error(yaml: &str, location: &str, needles: &[&str]) {
 
 #[test]
 fn malformed_yaml() {
-    expect_error("name: t\nstages:\n  - id: a\n    use: [packing.rsa\n", "4:", &["expected"]);
+    expect_error(
+        "name: t\nstages:\n  - id: a\n    use: [packing.rsa\n",
+        "4:",
+        &["expected"],
+    );
 }
 
 #[test]
@@ -146,7 +156,15 @@ fn describe_and_list_show_every_parameter_with_units() {
     let dir = tempfile::tempdir().unwrap();
     let (code, out, _) = pipe(&["describe", "packing.rsa"], dir.path());
     assert_eq!(code, 0);
-    for k in ["size", "radius", "volume_fraction", "periodic", "max_attempts_per_sphere", "[m]", "default"] {
+    for k in [
+        "size",
+        "radius",
+        "volume_fraction",
+        "periodic",
+        "max_attempts_per_sphere",
+        "[m]",
+        "default",
+    ] {
         assert!(out.contains(k), "describe lacks `{k}`:\n{out}");
     }
     let (code, out, _) = pipe(&["list"], dir.path());
@@ -159,8 +177,12 @@ fn describe_and_list_show_every_parameter_with_units() {
 
 #[test]
 fn readme_stage_table_is_generated_from_the_registry() {
-    let readme = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
-    let begin = readme.find("<!-- stages:begin -->\n").expect("begin marker") + "<!-- stages:begin -->\n".len();
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+    let begin = readme
+        .find("<!-- stages:begin -->\n")
+        .expect("begin marker")
+        + "<!-- stages:begin -->\n".len();
     let end = readme.find("<!-- stages:end -->").expect("end marker");
     let expected = grainpipe_cli::describe::list_markdown(&grainpipe_cli::builtin_registry());
     assert!(

@@ -195,7 +195,10 @@ impl SizeDistribution {
             Exponential { mean, .. } => pos("mean", mean.si())?,
             Tabulated { points, .. } => {
                 if points.len() < 2 {
-                    return Err(("points", "needs at least two [size, probability] points".into()));
+                    return Err((
+                        "points",
+                        "needs at least two [size, probability] points".into(),
+                    ));
                 }
                 for (i, w) in points.windows(2).enumerate() {
                     if !(w[1].0.si() > w[0].0.si()) {
@@ -426,7 +429,9 @@ impl SizeDistribution {
             }
             Tabulated { points, .. } => {
                 // First segment whose upper probability reaches p (skips flat pieces).
-                let k = points.partition_point(|q| q.1 < p).clamp(1, points.len() - 1);
+                let k = points
+                    .partition_point(|q| q.1 < p)
+                    .clamp(1, points.len() - 1);
                 let (x0, p0) = (points[k - 1].0.si(), points[k - 1].1);
                 let (x1, p1) = (points[k].0.si(), points[k].1);
                 if p1 > p0 {
@@ -662,7 +667,11 @@ mod tests {
         let var = s.iter().map(|x| (x - sm).powi(2)).sum::<f64>() / n as f64;
         // 5 standard errors of the sample mean: fails by chance with probability < 1e-6.
         let tol = 5.0 * (var / n as f64).sqrt();
-        assert!((d.mean() - sm).abs() < tol, "{} vs {sm} (tol {tol})", d.mean());
+        assert!(
+            (d.mean() - sm).abs() < tol,
+            "{} vs {sm} (tol {tol})",
+            d.mean()
+        );
         assert!(d.mean() > 8e-6 && d.mean() < 20e-6);
     }
 

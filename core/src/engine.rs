@@ -5,7 +5,9 @@
 use crate::model::{Artifact, ArtifactMeta, Provenance};
 use crate::pipeline::{Loc, PipelineDoc, PipelineError, PortRef};
 use crate::registry::{closest, Exporter, Registry};
-use crate::stage::{InputMetas, Inputs, Outputs, Preflight, Reporter, RunContext, Stage, StageError};
+use crate::stage::{
+    InputMetas, Inputs, Outputs, Preflight, Reporter, RunContext, Stage, StageError,
+};
 use indexmap::IndexMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -32,6 +34,8 @@ pub struct PlannedStep {
     pub seed: u64,
     /// Content hash of (stage id, version, params, seed, input keys).
     pub cache_key: String,
+    /// `built-in` or the plugin library the stage came from.
+    pub origin: String,
 }
 
 /// An export resolved to its producer and writer.
@@ -74,25 +78,42 @@ fn did_you_mean(s: Option<String>) -> Option<String> {
 }
 
 /// Resolves and preflights a pipeline. No stage runs and nothing large is allocated.
-pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Result<Plan, PipelineError> {
+pub fn plan(
+    doc: &PipelineDoc,
+    registry: &Registry,
+    opts: &PlanOptions,
+) -> Result<Plan, PipelineError> {
     let n = doc.steps.len();
     if n == 0 {
-        return Err(PipelineError::input(&doc.file, None, "the pipeline has no stages"));
+        return Err(PipelineError::input(
+            &doc.file,
+            None,
+            "the pipeline has no stages",
+        ));
     }
     // Unique step ids.
     for (i, s) in doc.steps.iter().enumerate() {
         if let Some(prev) = doc.steps[..i].iter().find(|p| p.id == s.id) {
-            return Err(err(doc, s.id_loc, format!(
-                "step id `{}` is used twice (first at line {})",
-                s.id, prev.id_loc.line
-            )));
+            return Err(err(
+                doc,
+                s.id_loc,
+                format!(
+                    "step id `{}` is used twice (first at line {})",
+                    s.id, prev.id_loc.line
+                ),
+            ));
         }
         if s.id.contains('.') {
-            return Err(err(doc, s.id_loc, format!("step id `{}` must not contain `.`", s.id)));
+            return Err(err(
+                doc,
+                s.id_loc,
+                format!("step id `{}` must not contain `.`", s.id),
+            ));
         }
     }
     // Stages and parameters.
     let mut stages: Vec<Arc<dyn Stage>> = Vec::with_capacity(n);
+    let mut origins: Vec<String> = Vec::with_capacity(n);
     let mut params: Vec<serde_json::Value> = Vec::with_capacity(n);
     for (i, s) in doc.steps.iter().enumerate() {
         let reg = registry.stage(&s.uses).ok_or_else(|| {
@@ -102,6 +123,7 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
             )
         })?;
         let stage = reg.stage.clone();
+        origins.push(reg.origin.clone());
         let p = stage
             .normalize_params(&serde_json::Value::Object(s.params.clone()))
             .map_err(|e| stage_error(doc, i, &*stage, e))?;
@@ -116,14 +138,23 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
         for (port, r) in &s.inputs {
             let spec = info.inputs.iter().find(|p| p.name == port).ok_or_else(|| {
                 let names: Vec<&str> = info.inputs.iter().map(|p| p.name).collect();
-                err(doc, r.key_loc, format!("stage `{}` has no input `{port}`", info.id)).with_help(
+                err(
+                    doc,
+                    r.key_loc,
+                    format!("stage `{}` has no input `{port}`", info.id),
+                )
+                .with_help(
                     did_you_mean(closest(port, names.iter().copied()))
                         .or(Some(format!("its inputs are: {}", list_or_none(&names)))),
                 )
             })?;
             let (producer, out_port) = resolve_ref(doc, &stages, &r.source, r.value_loc)?;
             if producer == i {
-                return Err(err(doc, r.value_loc, format!("step `{}` takes its own output", s.id)));
+                return Err(err(
+                    doc,
+                    r.value_loc,
+                    format!("step `{}` takes its own output", s.id),
+                ));
             }
             let out_kind = stages[producer]
                 .info()
@@ -133,19 +164,33 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
                 .map(|p| p.kind)
                 .expect("resolved port exists");
             if out_kind != spec.kind {
-                return Err(err(doc, r.value_loc, format!(
-                    "input `{port}` of `{}` takes a {} but `{}` is a {out_kind}",
-                    s.id, spec.kind, r.source
-                )));
+                return Err(err(
+                    doc,
+                    r.value_loc,
+                    format!(
+                        "input `{port}` of `{}` takes a {} but `{}` is a {out_kind}",
+                        s.id, spec.kind, r.source
+                    ),
+                ));
             }
-            w.insert(port.clone(), Wire { producer, port: out_port });
+            w.insert(
+                port.clone(),
+                Wire {
+                    producer,
+                    port: out_port,
+                },
+            );
         }
         for spec in &info.inputs {
             if !spec.optional && !w.contains_key(spec.name) {
-                return Err(err(doc, s.id_loc, format!(
-                    "step `{}` ({}) needs input `{}` ({}): add `in: {{{}: <step>.<port>}}`",
-                    s.id, info.id, spec.name, spec.kind, spec.name
-                )));
+                return Err(err(
+                    doc,
+                    s.id_loc,
+                    format!(
+                        "step `{}` ({}) needs input `{}` ({}): add `in: {{{}: <step>.<port>}}`",
+                        s.id, info.id, spec.name, spec.kind, spec.name
+                    ),
+                ));
             }
         }
         wires.push(w);
@@ -155,7 +200,13 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
     let mut exports = Vec::new();
     for e in &doc.exports {
         let (producer, port) = resolve_ref(doc, &stages, &e.from, e.from_loc)?;
-        let kind = stages[producer].info().outputs.iter().find(|p| p.name == port).expect("port").kind;
+        let kind = stages[producer]
+            .info()
+            .outputs
+            .iter()
+            .find(|p| p.name == port)
+            .expect("port")
+            .kind;
         let exporter = registry.exporter_for(e.format.as_deref(), &e.to);
         let accepting: Vec<&str> = registry
             .exporters()
@@ -166,12 +217,15 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
         let exporter = match exporter {
             Some(x) if x.accepts(kind) => x,
             Some(x) => {
-                return Err(err(doc, e.format_loc.unwrap_or(e.to_loc), format!(
-                    "format `{}` cannot hold a {kind} (`{}`)",
-                    x.name(),
-                    e.from
-                ))
-                .with_help(Some(format!("formats for a {kind}: {}", list_or_none(&accepting)))))
+                return Err(err(
+                    doc,
+                    e.format_loc.unwrap_or(e.to_loc),
+                    format!("format `{}` cannot hold a {kind} (`{}`)", x.name(), e.from),
+                )
+                .with_help(Some(format!(
+                    "formats for a {kind}: {}",
+                    list_or_none(&accepting)
+                ))))
             }
             None => {
                 let what = e.format.clone().unwrap_or_else(|| {
@@ -180,11 +234,24 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
                         e.to.extension().and_then(|x| x.to_str()).unwrap_or("")
                     )
                 });
-                return Err(err(doc, e.format_loc.unwrap_or(e.to_loc), format!("no exporter for {what}"))
-                    .with_help(Some(format!("formats for a {kind}: {}", list_or_none(&accepting)))));
+                return Err(err(
+                    doc,
+                    e.format_loc.unwrap_or(e.to_loc),
+                    format!("no exporter for {what}"),
+                )
+                .with_help(Some(format!(
+                    "formats for a {kind}: {}",
+                    list_or_none(&accepting)
+                ))));
             }
         };
-        exports.push(PlannedExport { producer, port, path: e.to.clone(), exporter, loc: e.to_loc });
+        exports.push(PlannedExport {
+            producer,
+            port,
+            path: e.to.clone(),
+            exporter,
+            loc: e.to_loc,
+        });
     }
     // Which steps are needed.
     let mut needed = vec![false; n];
@@ -193,8 +260,15 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
         match doc.step(t) {
             Some((i, _)) => roots.push(i),
             None => {
-                return Err(PipelineError::input(&doc.file, None, format!("no step `{t}` to target"))
-                    .with_help(did_you_mean(closest(t, doc.steps.iter().map(|s| s.id.as_str())))))
+                return Err(PipelineError::input(
+                    &doc.file,
+                    None,
+                    format!("no step `{t}` to target"),
+                )
+                .with_help(did_you_mean(closest(
+                    t,
+                    doc.steps.iter().map(|s| s.id.as_str()),
+                ))))
             }
         }
     }
@@ -221,11 +295,16 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
             let meta: ArtifactMeta = planned[w.producer]
                 .as_ref()
                 .and_then(|p| p.preflight.outputs.get(&w.port).cloned())
-                .ok_or_else(|| err(doc, s.id_loc, format!(
-                    "stage `{}` did not declare output `{}` in preflight",
-                    stages[w.producer].info().id,
-                    w.port
-                )))?;
+                .ok_or_else(|| {
+                    err(
+                        doc,
+                        s.inputs[port].value_loc,
+                        format!(
+                            "step `{}` will not give output `{}` with these parameters",
+                            doc.steps[w.producer].id, w.port
+                        ),
+                    )
+                })?;
             metas.insert(port.clone(), meta);
         }
         let pf = stages[i]
@@ -243,8 +322,33 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
             preflight: pf,
             seed,
             cache_key: key,
+            origin: origins[i].clone(),
         });
         exec_order.push(i);
+    }
+    for e in &exports {
+        let pf = &planned[e.producer]
+            .as_ref()
+            .expect("export producers are needed")
+            .preflight;
+        if !pf.outputs.contains_key(&e.port) {
+            return Err(err(
+                doc,
+                e.loc,
+                format!(
+                    "step `{}` will not give output `{}` with these parameters",
+                    doc.steps[e.producer].id, e.port
+                ),
+            )
+            .with_help(Some(format!(
+                "it gives: {}",
+                pf.outputs
+                    .keys()
+                    .map(|k| format!("{}.{k}", doc.steps[e.producer].id))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ))));
+        }
     }
     if let Some(limit) = opts.memory_limit {
         if memory > limit {
@@ -256,7 +360,13 @@ pub fn plan(doc: &PipelineDoc, registry: &Registry, opts: &PlanOptions) -> Resul
             .with_help(Some("reduce the domain size or resolution (see `pipe validate` for the estimate per stage)".into())));
         }
     }
-    Ok(Plan { seed: doc.seed, steps: planned, order: exec_order, exports, memory_bytes: memory })
+    Ok(Plan {
+        seed: doc.seed,
+        steps: planned,
+        order: exec_order,
+        exports,
+        memory_bytes: memory,
+    })
 }
 
 fn list_or_none(names: &[&str]) -> String {
@@ -276,21 +386,39 @@ fn stage_error(doc: &PipelineDoc, i: usize, stage: &dyn Stage, e: StageError) ->
             let top = key.split(['.', '[']).next().unwrap_or(&key).to_string();
             let loc = s.param_locs.get(&top).copied().unwrap_or(s.uses_loc);
             let help = if message.starts_with("unknown field") {
-                did_you_mean(closest(&top, info.params.iter().map(|p| p.name)))
-                    .or(Some(format!("`pipe describe {}` lists its parameters", info.id)))
+                did_you_mean(closest(&top, info.params.iter().map(|p| p.name))).or(Some(format!(
+                    "`pipe describe {}` lists its parameters",
+                    info.id
+                )))
             } else {
                 info.params
                     .iter()
                     .find(|p| p.name == top)
                     .map(|p| format!("`{}`: {}{}", p.name, p.doc, unit_hint(p.unit)))
             };
-            err(doc, loc, format!("step `{}` ({}): parameter `{key}`: {message}", s.id, info.id)).with_help(help)
+            err(
+                doc,
+                loc,
+                format!(
+                    "step `{}` ({}): parameter `{key}`: {message}",
+                    s.id, info.id
+                ),
+            )
+            .with_help(help)
         }
         StageError::InvalidInput { port, message } => {
             let loc = s.inputs.get(&port).map(|r| r.value_loc).unwrap_or(s.id_loc);
-            err(doc, loc, format!("step `{}` ({}): input `{port}`: {message}", s.id, info.id))
+            err(
+                doc,
+                loc,
+                format!("step `{}` ({}): input `{port}`: {message}", s.id, info.id),
+            )
         }
-        other => err(doc, s.uses_loc, format!("step `{}` ({}): {other}", s.id, info.id)),
+        other => err(
+            doc,
+            s.uses_loc,
+            format!("step `{}` ({}): {other}", s.id, info.id),
+        ),
     }
 }
 
@@ -310,32 +438,48 @@ fn resolve_ref(
     loc: Loc,
 ) -> Result<(usize, String), PipelineError> {
     let (i, _) = doc.step(&r.step).ok_or_else(|| {
-        err(doc, loc, format!("no step `{}` in this pipeline", r.step))
-            .with_help(did_you_mean(closest(&r.step, doc.steps.iter().map(|s| s.id.as_str()))))
+        err(doc, loc, format!("no step `{}` in this pipeline", r.step)).with_help(did_you_mean(
+            closest(&r.step, doc.steps.iter().map(|s| s.id.as_str())),
+        ))
     })?;
     let outputs: Vec<&str> = stages[i].info().outputs.iter().map(|p| p.name).collect();
     match &r.port {
         Some(p) if outputs.contains(&p.as_str()) => Ok((i, p.clone())),
-        Some(p) => Err(err(doc, loc, format!(
-            "step `{}` ({}) has no output `{p}`",
-            r.step,
-            stages[i].info().id
-        ))
+        Some(p) => Err(err(
+            doc,
+            loc,
+            format!(
+                "step `{}` ({}) has no output `{p}`",
+                r.step,
+                stages[i].info().id
+            ),
+        )
         .with_help(
             did_you_mean(closest(p, outputs.iter().copied()).map(|o| format!("{}.{o}", r.step)))
                 .or(Some(format!("its outputs are: {}", list_or_none(&outputs)))),
         )),
         None if outputs.len() == 1 => Ok((i, outputs[0].to_string())),
-        None => Err(err(doc, loc, format!("step `{}` has several outputs; name one", r.step))
-            .with_help(Some(format!(
-                "write one of: {}",
-                outputs.iter().map(|o| format!("{}.{o}", r.step)).collect::<Vec<_>>().join(", ")
-            )))),
+        None => Err(err(
+            doc,
+            loc,
+            format!("step `{}` has several outputs; name one", r.step),
+        )
+        .with_help(Some(format!(
+            "write one of: {}",
+            outputs
+                .iter()
+                .map(|o| format!("{}.{o}", r.step))
+                .collect::<Vec<_>>()
+                .join(", ")
+        )))),
     }
 }
 
 /// Kahn's algorithm over the input wires; a cycle is reported with its members.
-fn topological_order(doc: &PipelineDoc, wires: &[IndexMap<String, Wire>]) -> Result<Vec<usize>, PipelineError> {
+fn topological_order(
+    doc: &PipelineDoc,
+    wires: &[IndexMap<String, Wire>],
+) -> Result<Vec<usize>, PipelineError> {
     let n = wires.len();
     let mut indegree: Vec<usize> = wires.iter().map(|w| w.len()).collect();
     let mut consumers: Vec<Vec<usize>> = vec![Vec::new(); n];
@@ -345,7 +489,8 @@ fn topological_order(doc: &PipelineDoc, wires: &[IndexMap<String, Wire>]) -> Res
         }
     }
     // Keep file order among independent steps so runs read top to bottom.
-    let mut ready: std::collections::BTreeSet<usize> = (0..n).filter(|&i| indegree[i] == 0).collect();
+    let mut ready: std::collections::BTreeSet<usize> =
+        (0..n).filter(|&i| indegree[i] == 0).collect();
     let mut order = Vec::with_capacity(n);
     while let Some(i) = ready.pop_first() {
         order.push(i);
@@ -357,13 +502,26 @@ fn topological_order(doc: &PipelineDoc, wires: &[IndexMap<String, Wire>]) -> Res
         }
     }
     if order.len() < n {
-        let in_cycle: Vec<&str> = (0..n).filter(|&i| indegree[i] > 0).map(|i| doc.steps[i].id.as_str()).collect();
+        let in_cycle: Vec<&str> = (0..n)
+            .filter(|&i| indegree[i] > 0)
+            .map(|i| doc.steps[i].id.as_str())
+            .collect();
         let first = (0..n).find(|&i| indegree[i] > 0).expect("cycle member");
-        return Err(err(doc, doc.steps[first].id_loc, format!(
-            "the steps {} depend on each other in a cycle",
-            in_cycle.iter().map(|s| format!("`{s}`")).collect::<Vec<_>>().join(", ")
-        ))
-        .with_help(Some("a step's inputs must come from steps that do not need its outputs".into())));
+        return Err(err(
+            doc,
+            doc.steps[first].id_loc,
+            format!(
+                "the steps {} depend on each other in a cycle",
+                in_cycle
+                    .iter()
+                    .map(|s| format!("`{s}`"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        )
+        .with_help(Some(
+            "a step's inputs must come from steps that do not need its outputs".into(),
+        )));
     }
     Ok(order)
 }
@@ -388,7 +546,13 @@ fn cache_key(
     for (port, w) in inputs {
         h.update(port.as_bytes());
         h.update(b"=");
-        h.update(planned[w.producer].as_ref().expect("producer planned").cache_key.as_bytes());
+        h.update(
+            planned[w.producer]
+                .as_ref()
+                .expect("producer planned")
+                .cache_key
+                .as_bytes(),
+        );
         h.update(b".");
         h.update(w.port.as_bytes());
         h.update(b";");
@@ -475,25 +639,37 @@ pub fn execute(
         let step = plan.steps[i].as_ref().expect("planned");
         let mut inputs = Inputs::new();
         for (port, w) in &step.inputs {
-            let out = results[w.producer].as_ref().expect("producer ran before consumer");
+            let out = results[w.producer]
+                .as_ref()
+                .expect("producer ran before consumer");
             let a = out.get(&w.port).ok_or_else(|| {
-                PipelineError::run(&doc.file, Some(doc.steps[w.producer].id_loc), format!(
-                    "step `{}` did not produce its declared output `{}`",
-                    doc.steps[w.producer].id, w.port
-                ))
+                PipelineError::run(
+                    &doc.file,
+                    Some(doc.steps[w.producer].id_loc),
+                    format!(
+                        "step `{}` did not produce its declared output `{}`",
+                        doc.steps[w.producer].id, w.port
+                    ),
+                )
             })?;
             inputs.insert(port.clone(), Arc::new(a.clone()));
         }
         let start = Instant::now();
         let reporter = observer.step_started(step);
-        let cached = opts.cache_dir.as_ref().and_then(|d| cache_load(d, &step.cache_key));
+        let cached = opts
+            .cache_dir
+            .as_ref()
+            .and_then(|d| cache_load(d, &step.cache_key));
         let from_cache = cached.is_some();
         let outputs = match cached {
             Some(o) => o,
             None => {
                 let ctx = RunContext::new(step.seed, &*reporter);
                 let o = step.stage.run(&step.params, &inputs, &ctx).map_err(|e| {
-                    let class_input = matches!(e, StageError::InvalidParam { .. } | StageError::InvalidInput { .. });
+                    let class_input = matches!(
+                        e,
+                        StageError::InvalidParam { .. } | StageError::InvalidInput { .. }
+                    );
                     let mut pe = stage_error(doc, i, &*step.stage, e);
                     if !class_input {
                         pe.class = crate::pipeline::ErrorClass::Run;
@@ -503,14 +679,20 @@ pub fn execute(
                 check_outputs(doc, i, step, &o)?;
                 if let Some(d) = &opts.cache_dir {
                     if let Err(e) = cache_store(d, &step.cache_key, &o) {
-                        reporter.message(crate::stage::Level::Warn, &format!("cache not written: {e}"));
+                        reporter.message(
+                            crate::stage::Level::Warn,
+                            &format!("cache not written: {e}"),
+                        );
                     }
                 }
                 o
             }
         };
         drop(reporter);
-        let st = StepStats { wall: start.elapsed(), from_cache };
+        let st = StepStats {
+            wall: start.elapsed(),
+            from_cache,
+        };
         observer.step_finished(step, &st);
         timings.push((step.id.clone(), st.wall.as_secs_f64()));
         stats.insert(step.id.clone(), st);
@@ -519,9 +701,9 @@ pub fn execute(
         for e in plan.exports.iter().filter(|e| e.producer == i) {
             let artifact = outputs.get(&e.port).expect("checked output");
             let prov = provenance(doc, plan, step, &e.port, &timings);
-            e.exporter
-                .write(artifact, &e.path, &prov)
-                .map_err(|m| PipelineError::run(&doc.file, Some(e.loc), format!("export failed: {m}")))?;
+            e.exporter.write(artifact, &e.path, &prov).map_err(|m| {
+                PipelineError::run(&doc.file, Some(e.loc), format!("export failed: {m}"))
+            })?;
             observer.exported(&e.path);
         }
     }
@@ -533,26 +715,42 @@ pub fn execute(
     Ok(RunResult { outputs, stats })
 }
 
-/// A stage must give every declared output with the declared kind.
-fn check_outputs(doc: &PipelineDoc, i: usize, step: &PlannedStep, o: &Outputs) -> Result<(), PipelineError> {
+/// A stage must give every output its preflight announced, with the declared kind.
+fn check_outputs(
+    doc: &PipelineDoc,
+    i: usize,
+    step: &PlannedStep,
+    o: &Outputs,
+) -> Result<(), PipelineError> {
     for spec in &step.stage.info().outputs {
+        if !step.preflight.outputs.contains_key(spec.name) {
+            continue;
+        }
         match o.get(spec.name) {
             Some(a) if a.kind() == spec.kind => {}
             Some(a) => {
-                return Err(PipelineError::run(&doc.file, Some(doc.steps[i].uses_loc), format!(
-                    "stage `{}` gave a {} for output `{}`, declared {}",
-                    step.stage.info().id,
-                    a.kind(),
-                    spec.name,
-                    spec.kind
-                )))
+                return Err(PipelineError::run(
+                    &doc.file,
+                    Some(doc.steps[i].uses_loc),
+                    format!(
+                        "stage `{}` gave a {} for output `{}`, declared {}",
+                        step.stage.info().id,
+                        a.kind(),
+                        spec.name,
+                        spec.kind
+                    ),
+                ))
             }
             None => {
-                return Err(PipelineError::run(&doc.file, Some(doc.steps[i].uses_loc), format!(
-                    "stage `{}` did not give its output `{}`",
-                    step.stage.info().id,
-                    spec.name
-                )))
+                return Err(PipelineError::run(
+                    &doc.file,
+                    Some(doc.steps[i].uses_loc),
+                    format!(
+                        "stage `{}` did not give its output `{}`",
+                        step.stage.info().id,
+                        spec.name
+                    ),
+                ))
             }
         }
     }
@@ -560,7 +758,13 @@ fn check_outputs(doc: &PipelineDoc, i: usize, step: &PlannedStep, o: &Outputs) -
 }
 
 /// Provenance written into every exported file.
-fn provenance(doc: &PipelineDoc, plan: &Plan, step: &PlannedStep, port: &str, timings: &[(String, f64)]) -> Provenance {
+fn provenance(
+    doc: &PipelineDoc,
+    plan: &Plan,
+    step: &PlannedStep,
+    port: &str,
+    timings: &[(String, f64)],
+) -> Provenance {
     let info = step.stage.info();
     let mut p = Provenance::default();
     let e = &mut p.entries;
@@ -570,12 +774,17 @@ fn provenance(doc: &PipelineDoc, plan: &Plan, step: &PlannedStep, port: &str, ti
     e.insert("seed".into(), plan.seed.to_string());
     e.insert("step".into(), format!("{}.{port}", step.id));
     e.insert("stage".into(), format!("{} {}", info.id, info.version));
+    e.insert("stage_origin".into(), step.origin.clone());
     e.insert("stage_seed".into(), step.seed.to_string());
     e.insert("params".into(), step.params.to_string());
     e.insert("cache_key".into(), step.cache_key.clone());
     e.insert(
         "stage_timings_s".into(),
-        timings.iter().map(|(s, t)| format!("{s}={t:.3}")).collect::<Vec<_>>().join(", "),
+        timings
+            .iter()
+            .map(|(s, t)| format!("{s}={t:.3}"))
+            .collect::<Vec<_>>()
+            .join(", "),
     );
     e.insert("pipeline_yaml".into(), doc.source.clone());
     p

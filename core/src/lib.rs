@@ -6,6 +6,7 @@ pub mod engine;
 pub mod fsutil;
 pub mod model;
 pub mod pipeline;
+pub mod plugin_host;
 pub mod registry;
 pub mod stage;
 pub mod units;

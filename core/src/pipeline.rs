@@ -63,7 +63,10 @@ impl PipelineError {
         }
     }
     pub fn run(file: &Path, loc: Option<Loc>, message: impl Into<String>) -> Self {
-        PipelineError { class: ErrorClass::Run, ..Self::input(file, loc, message) }
+        PipelineError {
+            class: ErrorClass::Run,
+            ..Self::input(file, loc, message)
+        }
     }
     pub fn with_help(mut self, help: Option<String>) -> Self {
         self.help = help;
@@ -80,7 +83,14 @@ impl PipelineError {
 impl fmt::Display for PipelineError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self.loc {
-            Some(l) => write!(f, "{}:{}:{}: {}", self.file.display(), l.line, l.col, self.message)?,
+            Some(l) => write!(
+                f,
+                "{}:{}:{}: {}",
+                self.file.display(),
+                l.line,
+                l.col,
+                self.message
+            )?,
             None => write!(f, "{}: {}", self.file.display(), self.message)?,
         }
         if let Some(h) = &self.help {
@@ -102,8 +112,14 @@ pub struct PortRef {
 impl PortRef {
     pub fn parse(s: &str) -> PortRef {
         match s.split_once('.') {
-            Some((a, b)) => PortRef { step: a.to_string(), port: Some(b.to_string()) },
-            None => PortRef { step: s.to_string(), port: None },
+            Some((a, b)) => PortRef {
+                step: a.to_string(),
+                port: Some(b.to_string()),
+            },
+            None => PortRef {
+                step: s.to_string(),
+                port: None,
+            },
         }
     }
 }
@@ -160,6 +176,8 @@ pub struct PipelineDoc {
     pub seed: u64,
     pub steps: Vec<Step>,
     pub exports: Vec<Export>,
+    /// Plugin libraries or directories (`plugins:`), with their locations.
+    pub plugins: Vec<(PathBuf, Loc)>,
 }
 
 #[derive(Deserialize)]
@@ -173,6 +191,8 @@ struct RawDoc {
     stages: Vec<Spanned<RawStep>>,
     #[serde(default)]
     export: Vec<Spanned<RawExport>>,
+    #[serde(default)]
+    plugins: Vec<Spanned<String>>,
 }
 
 #[derive(Deserialize)]
@@ -197,7 +217,7 @@ struct RawExport {
 }
 
 /// The keys a pipeline may use at each level, for suggestions on unknown keys.
-const DOC_KEYS: &[&str] = &["name", "description", "seed", "stages", "export"];
+const DOC_KEYS: &[&str] = &["name", "description", "seed", "stages", "export", "plugins"];
 const STEP_KEYS: &[&str] = &["id", "use", "in", "with"];
 const EXPORT_KEYS: &[&str] = &["from", "to", "format"];
 
@@ -209,7 +229,8 @@ impl PipelineDoc {
     }
 
     pub fn parse(path: &Path, source: String) -> Result<PipelineDoc, PipelineError> {
-        let raw: RawDoc = serde_saphyr::from_str(&source).map_err(|e| yaml_error(path, &e))?;
+        let raw: RawDoc = serde_saphyr::from_str_with_options(&source, yaml_options())
+            .map_err(|e| yaml_error(path, &e))?;
         let mut steps = Vec::with_capacity(raw.stages.len());
         for s in raw.stages {
             let s = s.value;
@@ -217,7 +238,11 @@ impl PipelineDoc {
             for (k, v) in s.inputs {
                 inputs.insert(
                     k.value.clone(),
-                    InputRef { source: PortRef::parse(&v.value), key_loc: Loc::of(&k), value_loc: Loc::of(&v) },
+                    InputRef {
+                        source: PortRef::parse(&v.value),
+                        key_loc: Loc::of(&k),
+                        value_loc: Loc::of(&v),
+                    },
                 );
             }
             let mut params = serde_json::Map::new();
@@ -259,6 +284,11 @@ impl PipelineDoc {
             seed: raw.seed,
             steps,
             exports,
+            plugins: raw
+                .plugins
+                .iter()
+                .map(|p| (PathBuf::from(&p.value), Loc::of(p)))
+                .collect(),
         })
     }
 
@@ -277,7 +307,8 @@ impl PipelineDoc {
             .trim()
             .split_once('.')
             .ok_or_else(|| cli(format!("`{lhs}` is not of the form step.key")))?;
-        let suggestion = crate::registry::closest(step_id, self.steps.iter().map(|s| s.id.as_str()));
+        let suggestion =
+            crate::registry::closest(step_id, self.steps.iter().map(|s| s.id.as_str()));
         let step = self
             .steps
             .iter_mut()
@@ -286,18 +317,30 @@ impl PipelineDoc {
                 cli(format!("no step `{step_id}` in {}", self.file.display()))
                     .with_help(suggestion.map(|s| format!("did you mean `{s}`?")))
             })?;
-        let value: serde_json::Value = serde_saphyr::from_str(value.trim())
-            .map_err(|e| cli(format!("value of `{lhs}` is not valid YAML: {e}")))?;
+        let value: serde_json::Value =
+            serde_saphyr::from_str_with_options(value.trim(), yaml_options())
+                .map_err(|e| cli(format!("value of `{lhs}` is not valid YAML: {e}")))?;
         step.params.insert(key.to_string(), value);
         Ok(())
     }
+}
+
+/// YAML 1.2 booleans only: `axis: y` must stay the string "y", not become `true`.
+fn yaml_options() -> serde_saphyr::Options {
+    let mut o = serde_saphyr::Options::default();
+    o.strict_booleans = true;
+    o
 }
 
 fn yaml_error(path: &Path, e: &serde_saphyr::Error) -> PipelineError {
     let loc = e.location().map(Loc::from_location);
     // serde-saphyr's Display includes a rendered snippet; keep the first line as the message.
     let full = e.to_string();
-    let first = full.lines().next().unwrap_or(&full).trim_start_matches("error: ");
+    let first = full
+        .lines()
+        .next()
+        .unwrap_or(&full)
+        .trim_start_matches("error: ");
     // Drop the "line N column M: " prefix: the location is reported separately.
     let message = match first.split_once(": ") {
         Some((head, rest)) if head.starts_with("line ") => rest.to_string(),
@@ -328,7 +371,13 @@ mod tests {
         assert_eq!(d.steps[0].param_locs["radius"].line, 7);
         assert_eq!(d.steps[0].param_locs["radius"].col, 7);
         let inp = &d.steps[1].inputs["packing"];
-        assert_eq!(inp.source, PortRef { step: "a".into(), port: Some("packing".into()) });
+        assert_eq!(
+            inp.source,
+            PortRef {
+                step: "a".into(),
+                port: Some("packing".into())
+            }
+        );
         assert_eq!(d.exports[0].to, PathBuf::from("out/x.vti"));
     }
 
@@ -348,6 +397,11 @@ mod tests {
         assert_eq!(d.steps[0].params["radius"], serde_json::json!("70 um"));
         d.apply_override("a.n=[1, 2]").unwrap();
         assert_eq!(d.steps[0].params["n"], serde_json::json!([1, 2]));
+        // YAML 1.2: `y`, `no`, `on` are strings, only true/false are booleans.
+        d.apply_override("a.axis=y").unwrap();
+        assert_eq!(d.steps[0].params["axis"], serde_json::json!("y"));
+        d.apply_override("a.flag=true").unwrap();
+        assert_eq!(d.steps[0].params["flag"], serde_json::json!(true));
         let e = d.apply_override("aa.radius=1").unwrap_err();
         assert!(e.help.unwrap().contains("`a`"));
     }

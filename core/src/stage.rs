@@ -69,6 +69,9 @@ pub struct StageInfo {
 /// Result of a successful preflight.
 #[derive(Clone, Debug)]
 pub struct Preflight {
+    /// The outputs the run will give. A stage whose parameters select among alternative
+    /// outputs (e.g. `as: phase_image | field`) lists only the selected ones; consumers and
+    /// exports of an unlisted output are refused before anything runs.
     pub outputs: IndexMap<String, ArtifactMeta>,
     /// Estimated peak memory of `run` [bytes].
     pub memory_bytes: u64,

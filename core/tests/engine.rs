@@ -1,7 +1,9 @@
 //! The pipeline engine: cycles, laziness, caching, seeds and overrides, with small test
 //! stages whose results are known exactly.
 
-use grainpipe_core::engine::{execute, plan, Observer, PlanOptions, PlannedStep, RunOptions, StepStats};
+use grainpipe_core::engine::{
+    execute, plan, Observer, PlanOptions, PlannedStep, RunOptions, StepStats,
+};
 use grainpipe_core::pipeline::{ErrorClass, PipelineDoc};
 use grainpipe_core::stage::{Reporter, SilentReporter};
 use grainpipe_core::{
@@ -34,8 +36,18 @@ impl TypedStage for Source {
             version: "1",
             doc: "random numbers",
             params: vec![
-                ParamSpec { name: "n", ty: "integer", unit: "", doc: "count" },
-                ParamSpec { name: "fail", ty: "bool", unit: "", doc: "fail at run time" },
+                ParamSpec {
+                    name: "n",
+                    ty: "integer",
+                    unit: "",
+                    doc: "count",
+                },
+                ParamSpec {
+                    name: "fail",
+                    ty: "bool",
+                    unit: "",
+                    doc: "fail at run time",
+                },
             ],
             inputs: vec![],
             outputs: vec![PortSpec::new("table", ArtifactKind::Table, "numbers")],
@@ -49,12 +61,17 @@ impl TypedStage for Source {
     }
     fn run(&self, p: &SourceParams, _: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
         if p.fail {
-            return Err(StageError::failed("diverged after 3 iterations (residual 1e3)"));
+            return Err(StageError::failed(
+                "diverged after 3 iterations (residual 1e3)",
+            ));
         }
         let mut rng = ctx.rng();
         let v: Vec<f64> = (0..p.n).map(|_| rng.random::<f64>()).collect();
         let mut o = Outputs::new();
-        o.insert("table".into(), Artifact::Table(Table::new("x").with_f64("x", "1", v)));
+        o.insert(
+            "table".into(),
+            Artifact::Table(Table::new("x").with_f64("x", "1", v)),
+        );
         Ok(o)
     }
 }
@@ -79,7 +96,12 @@ impl TypedStage for Scale {
             id: "test.scale",
             version: "1",
             doc: "scales",
-            params: vec![ParamSpec { name: "factor", ty: "number", unit: "", doc: "factor" }],
+            params: vec![ParamSpec {
+                name: "factor",
+                ty: "number",
+                unit: "",
+                doc: "factor",
+            }],
             inputs: vec![PortSpec::new("table", ArtifactKind::Table, "in")],
             outputs: vec![PortSpec::new("table", ArtifactKind::Table, "out")],
         }
@@ -89,9 +111,17 @@ impl TypedStage for Scale {
     }
     fn run(&self, p: &ScaleParams, i: &Inputs, _: &RunContext) -> Result<Outputs, StageError> {
         let t = grainpipe_core::input(i, "table", Artifact::as_table)?;
-        let v: Vec<f64> = t.f64_column("x").unwrap().iter().map(|x| x * p.factor).collect();
+        let v: Vec<f64> = t
+            .f64_column("x")
+            .unwrap()
+            .iter()
+            .map(|x| x * p.factor)
+            .collect();
         let mut o = Outputs::new();
-        o.insert("table".into(), Artifact::Table(Table::new("x").with_f64("x", "1", v)));
+        o.insert(
+            "table".into(),
+            Artifact::Table(Table::new("x").with_f64("x", "1", v)),
+        );
         Ok(o)
     }
 }
@@ -118,7 +148,12 @@ fn doc(yaml: &str) -> PipelineDoc {
 }
 
 fn column(r: &grainpipe_core::engine::RunResult, step: &str) -> Vec<f64> {
-    r.outputs[step]["table"].as_table().unwrap().f64_column("x").unwrap().to_vec()
+    r.outputs[step]["table"]
+        .as_table()
+        .unwrap()
+        .f64_column("x")
+        .unwrap()
+        .to_vec()
 }
 
 const CHAIN: &str = "name: t\nseed: 5\nstages:\n  - id: src\n    use: test.source\n  - id: twice\n    use: test.scale\n    in: {table: src}\n  - id: unused\n    use: test.scale\n    in: {table: src.table}\n    with: {factor: 3}\n";
@@ -126,23 +161,39 @@ const CHAIN: &str = "name: t\nseed: 5\nstages:\n  - id: src\n    use: test.sourc
 #[test]
 fn cycle_through_several_steps_is_named_with_its_location() {
     let d = doc("name: t\nstages:\n  - id: a\n    use: test.scale\n    in: {table: c.table}\n  - id: b\n    use: test.scale\n    in: {table: a.table}\n  - id: c\n    use: test.scale\n    in: {table: b.table}\n");
-    let e = plan(&d, &registry(), &PlanOptions::default()).err().unwrap();
+    let e = plan(&d, &registry(), &PlanOptions::default())
+        .err()
+        .unwrap();
     assert_eq!(e.class, ErrorClass::Input);
     assert_eq!(e.loc.unwrap().line, 3);
-    assert!(e.message.contains("`a`, `b`, `c`") && e.message.contains("cycle"), "{e}");
+    assert!(
+        e.message.contains("`a`, `b`, `c`") && e.message.contains("cycle"),
+        "{e}"
+    );
 }
 
 #[test]
 fn only_steps_needed_by_targets_run() {
     let d = doc(CHAIN);
-    let p = plan(&d, &registry(), &PlanOptions { targets: vec!["twice".into()], ..Default::default() }).unwrap();
+    let p = plan(
+        &d,
+        &registry(),
+        &PlanOptions {
+            targets: vec!["twice".into()],
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let ids: Vec<&str> = p.order.iter().map(|&i| d.steps[i].id.as_str()).collect();
     assert_eq!(ids, ["src", "twice"]);
     let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
     assert!(!r.outputs.contains_key("unused"));
     // The scaled column is exactly twice the source (a multiplication by 2 is exact in binary).
     let src = column(&r, "src");
-    assert_eq!(column(&r, "twice"), src.iter().map(|x| 2.0 * x).collect::<Vec<_>>());
+    assert_eq!(
+        column(&r, "twice"),
+        src.iter().map(|x| 2.0 * x).collect::<Vec<_>>()
+    );
 }
 
 #[test]
@@ -162,18 +213,34 @@ fn same_seed_same_numbers_other_seed_other_numbers_and_streams_per_step() {
     let two = run("name: t\nseed: 5\nstages:\n  - id: s1\n    use: test.source\n  - id: s2\n    use: test.source\n");
     assert_ne!(column(&two, "s1"), column(&two, "s2"));
     // A step's numbers depend on its own id and the seed only, not on what else is in the file.
-    assert_eq!(column(&two, "s1"), column(&run("name: t\nseed: 5\nstages:\n  - id: s1\n    use: test.source\n"), "s1"));
+    assert_eq!(
+        column(&two, "s1"),
+        column(
+            &run("name: t\nseed: 5\nstages:\n  - id: s1\n    use: test.source\n"),
+            "s1"
+        )
+    );
 }
 
 #[test]
 fn cache_reuses_upstream_results_and_tracks_parameter_changes() {
     let dir = tempfile::tempdir().unwrap();
     let reg = registry();
-    let opts = RunOptions { cache_dir: Some(dir.path().to_path_buf()) };
+    let opts = RunOptions {
+        cache_dir: Some(dir.path().to_path_buf()),
+    };
     let yaml = CHAIN.replace("seed: 5", "seed: 77");
     let run = |yaml: &str| {
         let d = doc(yaml);
-        let p = plan(&d, &reg, &PlanOptions { targets: vec!["twice".into()], ..Default::default() }).unwrap();
+        let p = plan(
+            &d,
+            &reg,
+            &PlanOptions {
+                targets: vec!["twice".into()],
+                ..Default::default()
+            },
+        )
+        .unwrap();
         execute(&d, &p, &opts, &mut Quiet).unwrap()
     };
     let cold = run(&yaml);
@@ -182,10 +249,19 @@ fn cache_reuses_upstream_results_and_tracks_parameter_changes() {
     assert!(warm.stats.values().all(|s| s.from_cache));
     assert_eq!(column(&cold, "twice"), column(&warm, "twice"));
     // Changing a downstream parameter re-runs only downstream.
-    let changed = yaml.replace("    in: {table: src}\n", "    in: {table: src}\n    with: {factor: 4}\n");
+    let changed = yaml.replace(
+        "    in: {table: src}\n",
+        "    in: {table: src}\n    with: {factor: 4}\n",
+    );
     let r = run(&changed);
     assert!(r.stats["src"].from_cache && !r.stats["twice"].from_cache);
-    assert_eq!(column(&r, "twice"), column(&cold, "src").iter().map(|x| 4.0 * x).collect::<Vec<_>>());
+    assert_eq!(
+        column(&r, "twice"),
+        column(&cold, "src")
+            .iter()
+            .map(|x| 4.0 * x)
+            .collect::<Vec<_>>()
+    );
     // A corrupt cache file is ignored and recomputed, not trusted.
     for f in std::fs::read_dir(dir.path()).unwrap() {
         std::fs::write(f.unwrap().path(), b"garbage").unwrap();
@@ -199,11 +275,27 @@ fn cache_reuses_upstream_results_and_tracks_parameter_changes() {
 fn overrides_change_parameters_and_unknown_params_are_located() {
     let mut d = doc(CHAIN);
     d.apply_override("twice.factor=0.5").unwrap();
-    let p = plan(&d, &registry(), &PlanOptions { targets: vec!["twice".into()], ..Default::default() }).unwrap();
+    let p = plan(
+        &d,
+        &registry(),
+        &PlanOptions {
+            targets: vec!["twice".into()],
+            ..Default::default()
+        },
+    )
+    .unwrap();
     let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
-    assert_eq!(column(&r, "twice"), column(&r, "src").iter().map(|x| 0.5 * x).collect::<Vec<_>>());
+    assert_eq!(
+        column(&r, "twice"),
+        column(&r, "src")
+            .iter()
+            .map(|x| 0.5 * x)
+            .collect::<Vec<_>>()
+    );
     let d = doc(&CHAIN.replace("with: {factor: 3}", "with: {factr: 3}"));
-    let e = plan(&d, &registry(), &PlanOptions::default()).err().unwrap();
+    let e = plan(&d, &registry(), &PlanOptions::default())
+        .err()
+        .unwrap();
     assert_eq!(e.loc.unwrap().line, 12);
     assert_eq!(e.help.as_deref(), Some("did you mean `factor`?"));
 }
@@ -211,18 +303,37 @@ fn overrides_change_parameters_and_unknown_params_are_located() {
 #[test]
 fn preflight_errors_and_memory_limit_stop_before_running() {
     let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {n: 0}\n");
-    let e = plan(&d, &registry(), &PlanOptions::default()).err().unwrap();
-    assert!(e.message.contains("must be positive") && e.loc.unwrap().line == 5, "{e}");
+    let e = plan(&d, &registry(), &PlanOptions::default())
+        .err()
+        .unwrap();
+    assert!(
+        e.message.contains("must be positive") && e.loc.unwrap().line == 5,
+        "{e}"
+    );
     let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {n: 1000}\n");
-    let e = plan(&d, &registry(), &PlanOptions { memory_limit: Some(1000), ..Default::default() }).err().unwrap();
-    assert!(e.message.contains("7.8 KiB") && e.message.contains("1000 B"), "{e}");
+    let e = plan(
+        &d,
+        &registry(),
+        &PlanOptions {
+            memory_limit: Some(1000),
+            ..Default::default()
+        },
+    )
+    .err()
+    .unwrap();
+    assert!(
+        e.message.contains("7.8 KiB") && e.message.contains("1000 B"),
+        "{e}"
+    );
 }
 
 #[test]
 fn a_failing_stage_is_a_run_error_with_its_message() {
     let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {fail: true}\n");
     let p = plan(&d, &registry(), &PlanOptions::default()).unwrap();
-    let e = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet).err().unwrap();
+    let e = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet)
+        .err()
+        .unwrap();
     assert_eq!(e.class, ErrorClass::Run);
     assert_eq!(e.exit_code(), 1);
     assert!(e.message.contains("diverged after 3 iterations"), "{e}");
@@ -230,8 +341,11 @@ fn a_failing_stage_is_a_run_error_with_its_message() {
 
 #[test]
 fn duplicate_step_ids_are_refused() {
-    let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n  - id: s\n    use: test.source\n");
-    let e = plan(&d, &registry(), &PlanOptions::default()).err().unwrap();
+    let d =
+        doc("name: t\nstages:\n  - id: s\n    use: test.source\n  - id: s\n    use: test.source\n");
+    let e = plan(&d, &registry(), &PlanOptions::default())
+        .err()
+        .unwrap();
     assert_eq!(e.loc.unwrap().line, 5);
     assert!(e.message.contains("used twice"));
 }

@@ -1,14 +1,19 @@
 //! Helpers for the workspace-level tests in `tests/tests/`: run a shipped pipeline with its
 //! outputs redirected to a temporary directory.
 
-use grainpipe_core::engine::{execute, plan, Observer, PlanOptions, PlannedStep, RunOptions, RunResult, StepStats};
+use grainpipe_core::engine::{
+    execute, plan, Observer, PlanOptions, PlannedStep, RunOptions, RunResult, StepStats,
+};
 use grainpipe_core::pipeline::{PipelineDoc, PipelineError};
 use grainpipe_core::stage::{Reporter, SilentReporter};
 use std::path::{Path, PathBuf};
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("workspace root").to_path_buf()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("workspace root")
+        .to_path_buf()
 }
 
 struct Quiet;
@@ -22,7 +27,11 @@ impl Observer for Quiet {
 
 /// Loads `pipelines/<name>`, applies `overrides`, rewrites export paths `out/...` into
 /// `out_dir`, and runs it without cache through the built-in registry.
-pub fn run_pipeline(name: &str, overrides: &[&str], out_dir: &Path) -> Result<RunResult, PipelineError> {
+pub fn run_pipeline(
+    name: &str,
+    overrides: &[&str],
+    out_dir: &Path,
+) -> Result<RunResult, PipelineError> {
     let path = repo_root().join("pipelines").join(name);
     let mut doc = PipelineDoc::load(&path)?;
     for o in overrides {

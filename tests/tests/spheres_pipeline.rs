@@ -17,22 +17,34 @@ fn exported_image_matches_analytic_volume_fraction() {
     assert_eq!(img.grid.dims, [160, 160, 160]);
     let phi = img.fraction(1);
     // Foundation acceptance: within 0.5 % of the analytic fraction at 20 voxels per diameter.
-    assert!((phi - analytic).abs() / analytic < 0.005, "image {phi} analytic {analytic}");
+    assert!(
+        (phi - analytic).abs() / analytic < 0.005,
+        "image {phi} analytic {analytic}"
+    );
     // The HDF5 packing round-trips exactly (f64 positions are stored as f64).
     let back = grainpipe_formats::read_h5(&dir.path().join("spheres/packing.h5")).unwrap();
     assert_eq!(back.as_packing().unwrap().bodies, packing.bodies);
     // The report written to CSV agrees with the image read back.
     let t = grainpipe_formats::read_table_csv(&dir.path().join("spheres/voxelize.csv")).unwrap();
     let reported = t.f64_column("image_fraction").unwrap()[0];
-    assert!((reported - phi).abs() < 1e-12, "csv {reported} vs image {phi}");
+    assert!(
+        (reported - phi).abs() < 1e-12,
+        "csv {reported} vs image {phi}"
+    );
 }
 
 #[test]
 fn results_do_not_depend_on_thread_count() {
-    let overrides = ["pack.size=[200 um, 200 um, 200 um]", "voxels.voxels_per_diameter=8"];
+    let overrides = [
+        "pack.size=[200 um, 200 um, 200 um]",
+        "voxels.voxels_per_diameter=8",
+    ];
     let run = |threads: usize| {
         let dir = tempfile::tempdir().unwrap();
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
         let r = pool.install(|| run_pipeline("spheres.yaml", &overrides, dir.path()).unwrap());
         (
             r.outputs["pack"]["packing"].clone(),

@@ -1,0 +1,419 @@
+//! CSV and JSON for tables, tensors and contact graphs, with readers for round trips.
+//!
+//! CSV: a table has one header row `name [unit]` (just `name` when unitless); a tensor has one
+//! `#` comment line (name, unit, convention, shape) then its matrix rows; a contact graph has
+//! `i,j,gap [m],bonded` rows (contacts, then bonds that are not contacts with an empty gap).
+//! JSON: one object with `kind`, the data and `provenance`. JSON has no NaN: non-finite
+//! numbers are written as `null` and read back as NaN.
+
+use grainpipe_core::fsutil::atomic_write;
+use grainpipe_core::*;
+use serde_json::{json, Map, Value};
+use std::collections::HashSet;
+use std::path::Path;
+
+// ---------------------------------------------------------------------------------------
+// CSV
+
+fn header(name: &str, unit: &str) -> String {
+    if unit.is_empty() {
+        name.to_string()
+    } else {
+        format!("{name} [{unit}]")
+    }
+}
+
+/// Splits `name [unit]` back into its parts.
+fn split_header(h: &str) -> (String, String) {
+    let h = h.trim();
+    if let (Some(open), true) = (h.rfind(" ["), h.ends_with(']')) {
+        (h[..open].to_string(), h[open + 2..h.len() - 1].to_string())
+    } else {
+        (h.to_string(), String::new())
+    }
+}
+
+/// Shortest round-trip text, in exponent form for very small or large magnitudes.
+fn fmt_f64(x: f64) -> String {
+    if x != 0.0 && (x.abs() < 1e-3 || x.abs() >= 1e15) {
+        format!("{x:e}")
+    } else {
+        x.to_string()
+    }
+}
+
+fn csv_err(e: csv::Error) -> String {
+    e.to_string()
+}
+
+fn write_csv_records(
+    path: &Path,
+    comment: Option<String>,
+    rows: impl Iterator<Item = Vec<String>>,
+) -> Result<(), String> {
+    atomic_write(path, |tmp| -> Result<(), String> {
+        let mut file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
+        if let Some(c) = comment {
+            use std::io::Write;
+            writeln!(file, "# {}", c.replace('\n', " ")).map_err(|e| e.to_string())?;
+        }
+        let mut w = csv::WriterBuilder::new().flexible(true).from_writer(file);
+        for r in rows {
+            w.write_record(&r).map_err(csv_err)?;
+        }
+        w.flush().map_err(|e| e.to_string())
+    })
+}
+
+pub fn write_csv(a: &Artifact, path: &Path, _prov: &Provenance) -> Result<(), String> {
+    match a {
+        Artifact::Table(t) => {
+            t.validate()?;
+            let head: Vec<String> = t.columns.iter().map(|c| header(&c.name, &c.unit)).collect();
+            let rows = (0..t.rows()).map(|r| {
+                t.columns
+                    .iter()
+                    .map(|c| match &c.data {
+                        ColumnData::F64(v) => fmt_f64(v[r]),
+                        ColumnData::I64(v) => v[r].to_string(),
+                        ColumnData::Str(v) => v[r].clone(),
+                    })
+                    .collect()
+            });
+            write_csv_records(path, None, std::iter::once(head).chain(rows))
+        }
+        Artifact::Tensor(t) => {
+            check_tensor(t)?;
+            let cols = *t.shape.last().unwrap_or(&1);
+            let comment = format!(
+                "tensor {} unit={} convention={:?} shape={}",
+                t.name,
+                if t.unit.is_empty() { "1" } else { &t.unit },
+                t.convention,
+                t.shape
+                    .iter()
+                    .map(|s| s.to_string())
+                    .collect::<Vec<_>>()
+                    .join("x")
+            );
+            let rows = t
+                .values
+                .chunks(cols.max(1))
+                .map(|r| r.iter().map(|&x| fmt_f64(x)).collect());
+            write_csv_records(path, Some(comment), rows)
+        }
+        Artifact::ContactGraph(g) => {
+            let head = vec!["i".into(), "j".into(), "gap [m]".into(), "bonded".into()];
+            let bonds: HashSet<(usize, usize)> = g
+                .bonds
+                .iter()
+                .map(|b| (b[0].min(b[1]), b[0].max(b[1])))
+                .collect();
+            let contacts: HashSet<(usize, usize)> = g
+                .contacts
+                .iter()
+                .map(|c| (c.i.min(c.j), c.i.max(c.j)))
+                .collect();
+            let rows = g
+                .contacts
+                .iter()
+                .map(|c| {
+                    let b = bonds.contains(&(c.i.min(c.j), c.i.max(c.j)));
+                    vec![
+                        c.i.to_string(),
+                        c.j.to_string(),
+                        fmt_f64(c.gap),
+                        (b as u8).to_string(),
+                    ]
+                })
+                .chain(
+                    g.bonds
+                        .iter()
+                        .filter(|b| !contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))))
+                        .map(|b| {
+                            vec![
+                                b[0].to_string(),
+                                b[1].to_string(),
+                                String::new(),
+                                "1".into(),
+                            ]
+                        }),
+                );
+            write_csv_records(path, None, std::iter::once(head).chain(rows))
+        }
+        other => Err(format!(
+            "csv takes a Table, a Tensor or a ContactGraph, not a {}",
+            other.kind()
+        )),
+    }
+}
+
+fn check_tensor(t: &Tensor) -> Result<(), String> {
+    if t.shape.iter().product::<usize>() != t.values.len() {
+        return Err(format!(
+            "tensor `{}` has {} values for shape {:?}",
+            t.name,
+            t.values.len(),
+            t.shape
+        ));
+    }
+    Ok(())
+}
+
+/// Reads a table written by [`write_csv`] (or any CSV with one header row): a column whose
+/// cells all parse as integers is I64, else as numbers F64, else text.
+pub fn read_table_csv(path: &Path) -> Result<Table, String> {
+    let at = |e: String| format!("{}: {e}", path.display());
+    let mut r = csv::ReaderBuilder::new()
+        .comment(Some(b'#'))
+        .from_path(path)
+        .map_err(|e| at(csv_err(e)))?;
+    let heads: Vec<(String, String)> = r
+        .headers()
+        .map_err(|e| at(csv_err(e)))?
+        .iter()
+        .map(split_header)
+        .collect();
+    let mut cells: Vec<Vec<String>> = vec![Vec::new(); heads.len()];
+    for (k, rec) in r.records().enumerate() {
+        let rec = rec.map_err(|e| at(csv_err(e)))?;
+        if rec.len() != heads.len() {
+            return Err(at(format!(
+                "row {} has {} cells, header has {}",
+                k + 2,
+                rec.len(),
+                heads.len()
+            )));
+        }
+        for (c, v) in rec.iter().enumerate() {
+            cells[c].push(v.to_string());
+        }
+    }
+    let mut t = Table::new(
+        path.file_stem()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+    );
+    for ((name, unit), col) in heads.into_iter().zip(cells) {
+        let data = if let Ok(v) = col.iter().map(|s| s.parse::<i64>()).collect() {
+            ColumnData::I64(v)
+        } else if let Ok(v) = col.iter().map(|s| s.parse::<f64>()).collect() {
+            ColumnData::F64(v)
+        } else {
+            ColumnData::Str(col)
+        };
+        t.columns.push(Column { name, unit, data });
+    }
+    Ok(t)
+}
+
+// ---------------------------------------------------------------------------------------
+// JSON
+
+fn num(x: f64) -> Value {
+    serde_json::Number::from_f64(x)
+        .map(Value::Number)
+        .unwrap_or(Value::Null)
+}
+
+fn nested(values: &[f64], shape: &[usize]) -> Value {
+    match shape {
+        [] | [_] => Value::Array(values.iter().map(|&x| num(x)).collect()),
+        [_, rest @ ..] => {
+            let step: usize = rest.iter().product();
+            Value::Array(
+                values
+                    .chunks(step.max(1))
+                    .map(|c| nested(c, rest))
+                    .collect(),
+            )
+        }
+    }
+}
+
+fn prov_json(p: &Provenance) -> Value {
+    Value::Object(
+        p.entries
+            .iter()
+            .map(|(k, v)| (k.clone(), Value::String(v.clone())))
+            .collect::<Map<_, _>>(),
+    )
+}
+
+pub fn write_json(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    let v = match a {
+        Artifact::Table(t) => {
+            t.validate()?;
+            let cols: Vec<Value> = t
+                .columns
+                .iter()
+                .map(|c| {
+                    let values = match &c.data {
+                        ColumnData::F64(v) => Value::Array(v.iter().map(|&x| num(x)).collect()),
+                        ColumnData::I64(v) => json!(v),
+                        ColumnData::Str(v) => json!(v),
+                    };
+                    json!({"name": c.name, "unit": c.unit, "values": values})
+                })
+                .collect();
+            json!({"kind": "Table", "name": t.name, "columns": cols})
+        }
+        Artifact::Tensor(t) => {
+            check_tensor(t)?;
+            json!({
+                "kind": "Tensor", "name": t.name, "unit": t.unit,
+                "convention": format!("{:?}", t.convention),
+                "shape": t.shape, "values": nested(&t.values, &t.shape),
+            })
+        }
+        Artifact::ContactGraph(g) => {
+            let faces: Map<String, Value> = FACE_NAMES
+                .iter()
+                .zip(&g.faces)
+                .map(|(n, f)| (n.to_string(), json!(f)))
+                .collect();
+            json!({
+                "kind": "ContactGraph",
+                "contacts": g.contacts.iter().map(|c| json!([c.i, c.j, num(c.gap)])).collect::<Vec<_>>(),
+                "bonds": g.bonds,
+                "faces": faces,
+                "positions": g.positions.iter().map(|p| p.iter().map(|&x| num(x)).collect::<Vec<_>>()).collect::<Vec<_>>(),
+            })
+        }
+        other => {
+            return Err(format!(
+                "json takes a Table, a Tensor or a ContactGraph, not a {}",
+                other.kind()
+            ))
+        }
+    };
+    let mut v = v;
+    v["provenance"] = prov_json(prov);
+    let text = serde_json::to_string_pretty(&v).map_err(|e| e.to_string())?;
+    atomic_write(path, |tmp| std::fs::write(tmp, text))
+}
+
+fn load(path: &Path, kind: &str) -> Result<Value, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let v: Value = serde_json::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    if v["kind"] != kind {
+        return Err(format!(
+            "{}: holds kind {}, expected {kind}",
+            path.display(),
+            v["kind"]
+        ));
+    }
+    Ok(v)
+}
+
+fn f(v: &Value) -> f64 {
+    v.as_f64().unwrap_or(f64::NAN)
+}
+fn idx(v: &Value, what: &str) -> Result<usize, String> {
+    v.as_u64()
+        .map(|x| x as usize)
+        .ok_or_else(|| format!("`{what}`: {v} is not an index"))
+}
+fn s(v: &Value) -> String {
+    v.as_str().unwrap_or_default().to_string()
+}
+
+pub fn read_table_json(path: &Path) -> Result<Table, String> {
+    let v = load(path, "Table")?;
+    let mut t = Table::new(s(&v["name"]));
+    for c in v["columns"].as_array().into_iter().flatten() {
+        let vals = c["values"].as_array().cloned().unwrap_or_default();
+        let data = if vals.iter().all(|x| x.is_i64()) && !vals.is_empty() {
+            ColumnData::I64(vals.iter().map(|x| x.as_i64().unwrap_or(0)).collect())
+        } else if vals.iter().all(|x| x.is_number() || x.is_null()) {
+            ColumnData::F64(vals.iter().map(f).collect())
+        } else {
+            ColumnData::Str(vals.iter().map(s).collect())
+        };
+        t.columns.push(Column {
+            name: s(&c["name"]),
+            unit: s(&c["unit"]),
+            data,
+        });
+    }
+    Ok(t)
+}
+
+pub fn read_tensor_json(path: &Path) -> Result<Tensor, String> {
+    let v = load(path, "Tensor")?;
+    fn flatten(v: &Value, out: &mut Vec<f64>) {
+        match v {
+            Value::Array(a) => a.iter().for_each(|x| flatten(x, out)),
+            x => out.push(f(x)),
+        }
+    }
+    let mut values = Vec::new();
+    flatten(&v["values"], &mut values);
+    let shape: Vec<usize> = v["shape"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|x| idx(x, "shape"))
+        .collect::<Result<_, _>>()?;
+    let convention = match v["convention"].as_str() {
+        Some("Voigt") => TensorConvention::Voigt,
+        Some("Mandel") => TensorConvention::Mandel,
+        _ => TensorConvention::Plain,
+    };
+    let t = Tensor {
+        name: s(&v["name"]),
+        unit: s(&v["unit"]),
+        shape,
+        values,
+        convention,
+    };
+    check_tensor(&t).map_err(|e| format!("{}: {e}", path.display()))?;
+    Ok(t)
+}
+
+pub fn read_contact_graph_json(path: &Path) -> Result<ContactGraph, String> {
+    let v = load(path, "ContactGraph")?;
+    let at = |e: String| format!("{}: {e}", path.display());
+    let mut g = ContactGraph::default();
+    for c in v["contacts"].as_array().into_iter().flatten() {
+        g.contacts.push(Contact {
+            i: idx(&c[0], "contacts").map_err(at)?,
+            j: idx(&c[1], "contacts").map_err(at)?,
+            gap: f(&c[2]),
+        });
+    }
+    for b in v["bonds"].as_array().into_iter().flatten() {
+        g.bonds.push([
+            idx(&b[0], "bonds").map_err(at)?,
+            idx(&b[1], "bonds").map_err(at)?,
+        ]);
+    }
+    for (k, name) in FACE_NAMES.iter().enumerate() {
+        for x in v["faces"][name].as_array().into_iter().flatten() {
+            g.faces[k].push(idx(x, name).map_err(at)?);
+        }
+    }
+    for p in v["positions"].as_array().into_iter().flatten() {
+        g.positions.push([f(&p[0]), f(&p[1]), f(&p[2])]);
+    }
+    Ok(g)
+}
+
+crate::vtk_xml::exporter!(
+    CsvExporter,
+    "csv",
+    &["csv"],
+    [Table, Tensor, ContactGraph],
+    "CSV: tables (header `name [unit]`), tensors (matrix rows after a `#` line with unit and \
+     convention), contact graphs (i, j, gap, bonded)",
+    write_csv
+);
+crate::vtk_xml::exporter!(
+    JsonExporter,
+    "json",
+    &["json"],
+    [Table, Tensor, ContactGraph],
+    "JSON: tables (columns with units), tensors (nested rows, shape, convention), contact \
+     graphs (contacts, bonds, faces, positions); provenance included",
+    write_json
+);

@@ -1,0 +1,1292 @@
+//! VTK XML files: `.vti` ImageData (phase images, fields), `.vtp` PolyData (packings,
+//! contact graphs), `.pvd` collections (series), and a reader for `.vti`.
+//!
+//! Arrays are written `format="binary"`, zlib-compressed in 32 KiB blocks with a UInt64 header
+//! (what VTK/ParaView write by default), so large images stay small. The reader also takes
+//! ascii, uncompressed binary and appended (raw or base64) arrays with UInt32/UInt64 headers.
+
+use crate::volume::{from_bytes, to_le_bytes, Le, Probe, Volume, VolumeData, VolumeRef};
+use base64::Engine;
+use grainpipe_core::fsutil::atomic_write;
+use grainpipe_core::{
+    Artifact, ArtifactKind, ContactGraph, FieldData, Packing, Phase, Provenance, Series,
+};
+use std::collections::HashSet;
+use std::io::{Read, Write};
+use std::path::Path;
+
+const B64: base64::engine::GeneralPurpose = base64::engine::general_purpose::STANDARD;
+/// Uncompressed size of one zlib block (VTK's default).
+const BLOCK: usize = 1 << 15;
+
+/// VTK type names of the element types we write.
+pub(crate) trait VtkType: Le {
+    const NAME: &'static str;
+}
+macro_rules! vtk_type {
+    ($($t:ty => $n:expr),*) => {$( impl VtkType for $t { const NAME: &'static str = $n; } )*};
+}
+vtk_type!(u8 => "UInt8", u32 => "UInt32", i32 => "Int32", i64 => "Int64", f32 => "Float32", f64 => "Float64");
+
+/// One `<DataArray>` ready to encode.
+pub(crate) struct Array {
+    name: String,
+    vtk_type: &'static str,
+    ncomp: usize,
+    tuples: usize,
+    bytes: Vec<u8>,
+}
+
+impl Array {
+    pub fn new<T: VtkType>(name: &str, ncomp: usize, values: &[T]) -> Self {
+        Array {
+            name: name.to_string(),
+            vtk_type: T::NAME,
+            ncomp,
+            tuples: values.len() / ncomp.max(1),
+            bytes: to_le_bytes(values),
+        }
+    }
+
+    fn xml(&self, tag: &str) -> String {
+        let head = format!(
+            "<{tag} type=\"{}\" Name=\"{}\" NumberOfComponents=\"{}\" NumberOfTuples=\"{}\"",
+            self.vtk_type,
+            esc(&self.name),
+            self.ncomp,
+            self.tuples
+        );
+        if self.bytes.is_empty() {
+            // An empty compressed array has no blocks, which some VTK versions misread.
+            return format!("{head} format=\"ascii\">\n</{tag}>\n");
+        }
+        format!(
+            "{head} format=\"binary\">\n{}\n</{tag}>\n",
+            zlib_base64(&self.bytes)
+        )
+    }
+}
+
+/// VTK's compressed binary layout: base64(header) + base64(blocks), header =
+/// [#blocks, block size, last partial block size (0 if full), compressed sizes...] as UInt64.
+fn zlib_base64(bytes: &[u8]) -> String {
+    let blocks: Vec<&[u8]> = bytes.chunks(BLOCK).collect();
+    let last = bytes.len() % BLOCK;
+    let mut header: Vec<u64> = vec![blocks.len() as u64, BLOCK as u64, last as u64];
+    let mut body = Vec::new();
+    for b in &blocks {
+        let mut enc = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::fast());
+        enc.write_all(b).expect("in-memory write");
+        let c = enc.finish().expect("in-memory write");
+        header.push(c.len() as u64);
+        body.extend_from_slice(&c);
+    }
+    let mut s = B64.encode(to_le_bytes(&header));
+    s.push_str(&B64.encode(body));
+    s
+}
+
+/// A VTK string array (ascii: character codes, each string ended by 0).
+fn string_array(name: &str, values: &[&str]) -> String {
+    let mut codes = String::new();
+    for v in values {
+        for b in v.bytes() {
+            codes.push_str(&b.to_string());
+            codes.push(' ');
+        }
+        codes.push_str("0 ");
+    }
+    format!(
+        "<Array type=\"String\" Name=\"{}\" NumberOfTuples=\"{}\" format=\"ascii\">\n{}\n</Array>\n",
+        esc(name),
+        values.len(),
+        codes.trim_end()
+    )
+}
+
+fn esc(s: &str) -> String {
+    quick_xml::escape::escape(s).into_owned()
+}
+
+/// Shortest text that parses back to the same f64.
+fn num(x: f64) -> String {
+    format!("{x:e}")
+}
+
+fn nums(v: &[f64]) -> String {
+    v.iter().map(|&x| num(x)).collect::<Vec<_>>().join(" ")
+}
+
+fn file_head(kind: &str) -> String {
+    format!(
+        "<?xml version=\"1.0\"?>\n<VTKFile type=\"{kind}\" version=\"1.0\" byte_order=\"LittleEndian\" \
+         header_type=\"UInt64\" compressor=\"vtkZLibDataCompressor\">\n"
+    )
+}
+
+/// Names of field-data arrays the writers use themselves; provenance keys that collide get a
+/// `provenance.` prefix.
+const RESERVED: [&str; 6] = [
+    "phase_ids",
+    "phase_names",
+    "unit",
+    "periodic",
+    "domain_min",
+    "domain_max",
+];
+
+/// `<FieldData>` with the provenance (one string array per entry) and the given arrays.
+fn field_data(prov: &Provenance, strings: &[(&str, Vec<&str>)], arrays: &[Array]) -> String {
+    let mut s = String::from("<FieldData>\n");
+    for (k, v) in &prov.entries {
+        let name = if RESERVED.contains(&k.as_str()) || k.starts_with("faces_") {
+            format!("provenance.{k}")
+        } else {
+            k.clone()
+        };
+        s.push_str(&string_array(&name, &[v.as_str()]));
+    }
+    for (name, values) in strings {
+        s.push_str(&string_array(name, values));
+    }
+    for a in arrays {
+        s.push_str(&a.xml("Array"));
+    }
+    s.push_str("</FieldData>\n");
+    s
+}
+
+fn write_text(path: &Path, text: &str) -> Result<(), String> {
+    atomic_write(path, |tmp| std::fs::write(tmp, text.as_bytes()))
+}
+
+// ---------------------------------------------------------------------------------------
+// ImageData
+
+fn vti_text(v: VolumeRef, prov: &Provenance) -> Result<String, String> {
+    v.validate()?;
+    let g = v.grid();
+    let [nx, ny, nz] = g.dims;
+    let extent = format!("0 {nx} 0 {ny} 0 {nz}");
+    let periodic: Vec<u8> = g.periodic.iter().map(|&p| p as u8).collect();
+    let mut arrays = vec![Array::new("periodic", 3, &periodic)];
+    let mut strings: Vec<(&str, Vec<&str>)> = Vec::new();
+    let data = match v {
+        VolumeRef::Phase(p) => {
+            let ids: Vec<u8> = p.phases.iter().map(|ph| ph.id).collect();
+            arrays.push(Array::new("phase_ids", 1, &ids));
+            strings.push((
+                "phase_names",
+                p.phases.iter().map(|ph| ph.name.as_str()).collect(),
+            ));
+            Array::new("phase", 1, &p.labels)
+        }
+        VolumeRef::Field(f) => {
+            strings.push(("unit", vec![f.unit.as_str()]));
+            match &f.data {
+                FieldData::F32(d) => Array::new(&f.name, f.components, d),
+                FieldData::F64(d) => Array::new(&f.name, f.components, d),
+            }
+        }
+    };
+    let role = if v.components() == 3 {
+        "Vectors"
+    } else {
+        "Scalars"
+    };
+    let mut s = file_head("ImageData");
+    s.push_str(&format!(
+        "<ImageData WholeExtent=\"{extent}\" Origin=\"{}\" Spacing=\"{}\" Direction=\"1 0 0 0 1 0 0 0 1\">\n",
+        nums(&g.origin),
+        nums(&g.spacing)
+    ));
+    s.push_str(&field_data(prov, &strings, &arrays));
+    s.push_str(&format!(
+        "<Piece Extent=\"{extent}\">\n<PointData>\n</PointData>\n"
+    ));
+    s.push_str(&format!("<CellData {role}=\"{}\">\n", esc(v.name())));
+    s.push_str(&data.xml("DataArray"));
+    s.push_str("</CellData>\n</Piece>\n</ImageData>\n</VTKFile>\n");
+    Ok(s)
+}
+
+// ---------------------------------------------------------------------------------------
+// PolyData
+
+/// Points, vertex or line cells, point and cell data.
+struct Poly {
+    points: Vec<f64>,
+    /// Connectivity and offsets of `Verts` (one per point) or `Lines`.
+    verts: bool,
+    lines: Vec<i64>,
+    point_data: Vec<Array>,
+    cell_data: Vec<Array>,
+    field: String,
+}
+
+impl Poly {
+    fn xml(&self) -> String {
+        let np = self.points.len() / 3;
+        let (nverts, nlines) = if self.verts {
+            (np, 0)
+        } else {
+            (0, self.lines.len() / 2)
+        };
+        let mut s = file_head("PolyData");
+        s.push_str("<PolyData>\n");
+        s.push_str(&self.field);
+        s.push_str(&format!(
+            "<Piece NumberOfPoints=\"{np}\" NumberOfVerts=\"{nverts}\" NumberOfLines=\"{nlines}\" \
+             NumberOfStrips=\"0\" NumberOfPolys=\"0\">\n"
+        ));
+        let scalars = self
+            .point_data
+            .first()
+            .map(|a| format!(" Scalars=\"{}\"", esc(&a.name)))
+            .unwrap_or_default();
+        s.push_str(&format!("<PointData{scalars}>\n"));
+        for a in &self.point_data {
+            s.push_str(&a.xml("DataArray"));
+        }
+        s.push_str("</PointData>\n<CellData>\n");
+        for a in &self.cell_data {
+            s.push_str(&a.xml("DataArray"));
+        }
+        s.push_str("</CellData>\n<Points>\n");
+        s.push_str(&Array::new("Points", 3, &self.points).xml("DataArray"));
+        s.push_str("</Points>\n");
+        let (tag, conn, offsets): (&str, Vec<i64>, Vec<i64>) = if self.verts {
+            ("Verts", (0..np as i64).collect(), (1..=np as i64).collect())
+        } else {
+            (
+                "Lines",
+                self.lines.clone(),
+                (1..=nlines as i64).map(|k| 2 * k).collect(),
+            )
+        };
+        s.push_str(&format!("<{tag}>\n"));
+        s.push_str(&Array::new("connectivity", 1, &conn).xml("DataArray"));
+        s.push_str(&Array::new("offsets", 1, &offsets).xml("DataArray"));
+        s.push_str(&format!("</{tag}>\n</Piece>\n</PolyData>\n</VTKFile>\n"));
+        s
+    }
+}
+
+fn packing_poly(p: &Packing, prov: &Provenance) -> Result<Poly, String> {
+    for (name, a) in &p.attributes {
+        if a.values.len() != p.bodies.len() {
+            return Err(format!(
+                "packing attribute `{name}` has {} values for {} bodies",
+                a.values.len(),
+                p.bodies.len()
+            ));
+        }
+    }
+    if p.bodies.iter().any(|b| {
+        matches!(b.shape, grainpipe_core::BodyShape::Clump { index }
+            if p.library.as_ref().is_none_or(|l| index >= l.clumps.len()))
+    }) {
+        return Err("a clump body refers to a missing clump library entry".into());
+    }
+    let spheres = p.world_spheres();
+    let points: Vec<f64> = spheres.iter().flat_map(|s| s.center).collect();
+    let radius: Vec<f64> = spheres.iter().map(|s| s.radius).collect();
+    let body: Vec<i64> = spheres.iter().map(|s| s.body as i64).collect();
+    let layer: Vec<u32> = spheres.iter().map(|s| p.bodies[s.body].layer).collect();
+    let frozen: Vec<u8> = spheres
+        .iter()
+        .map(|s| p.bodies[s.body].frozen as u8)
+        .collect();
+    let mut point_data = vec![
+        Array::new("radius", 1, &radius),
+        Array::new("body_id", 1, &body),
+        Array::new("layer", 1, &layer),
+        Array::new("frozen", 1, &frozen),
+    ];
+    for (name, a) in &p.attributes {
+        let v: Vec<f64> = spheres.iter().map(|s| a.values[s.body]).collect();
+        point_data.push(Array::new(name, 1, &v));
+    }
+    let units: Vec<String> = p
+        .attributes
+        .iter()
+        .map(|(n, a)| format!("{n} [{}]", a.unit))
+        .collect();
+    let field = field_data(
+        prov,
+        &[(
+            "attribute_units",
+            units.iter().map(|s| s.as_str()).collect(),
+        )],
+        &[
+            Array::new("domain_min", 3, &p.domain.min),
+            Array::new("domain_max", 3, &p.domain.max),
+            Array::new(
+                "periodic",
+                3,
+                &p.domain.periodic.map(|b| b as u8).to_vec()[..],
+            ),
+        ],
+    );
+    Ok(Poly {
+        points,
+        verts: true,
+        lines: Vec::new(),
+        point_data,
+        cell_data: Vec::new(),
+        field,
+    })
+}
+
+/// Contacts as lines (gap, bonded) followed by bonds that are not contacts (gap = NaN: no
+/// gap is known for them).
+fn graph_poly(g: &ContactGraph, prov: &Provenance) -> Result<Poly, String> {
+    let n = g.positions.len();
+    let check = |i: usize, j: usize| {
+        if i >= n || j >= n {
+            Err(format!(
+                "contact graph pair ({i}, {j}) refers past its {n} positions"
+            ))
+        } else {
+            Ok(())
+        }
+    };
+    let bonds: HashSet<(usize, usize)> = g
+        .bonds
+        .iter()
+        .map(|b| (b[0].min(b[1]), b[0].max(b[1])))
+        .collect();
+    let mut lines = Vec::new();
+    let mut gap = Vec::new();
+    let mut bonded = Vec::new();
+    let mut in_contacts = HashSet::new();
+    for c in &g.contacts {
+        check(c.i, c.j)?;
+        let key = (c.i.min(c.j), c.i.max(c.j));
+        in_contacts.insert(key);
+        lines.extend([c.i as i64, c.j as i64]);
+        gap.push(c.gap);
+        bonded.push(bonds.contains(&key) as u8);
+    }
+    for b in &g.bonds {
+        check(b[0], b[1])?;
+        if !in_contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))) {
+            lines.extend([b[0] as i64, b[1] as i64]);
+            gap.push(f64::NAN);
+            bonded.push(1);
+        }
+    }
+    let mut coordination = vec![0i32; n];
+    for c in &g.contacts {
+        coordination[c.i] += 1;
+        coordination[c.j] += 1;
+    }
+    let ids: Vec<i64> = (0..n as i64).collect();
+    let faces: Vec<Array> = g
+        .faces
+        .iter()
+        .zip(grainpipe_core::FACE_NAMES)
+        .map(|(f, name)| {
+            let v: Vec<i64> = f.iter().map(|&i| i as i64).collect();
+            Array::new(&format!("faces_{name}"), 1, &v)
+        })
+        .collect();
+    Ok(Poly {
+        points: g.positions.iter().flatten().copied().collect(),
+        verts: false,
+        lines,
+        point_data: vec![
+            Array::new("body_id", 1, &ids),
+            Array::new("coordination", 1, &coordination),
+        ],
+        cell_data: vec![Array::new("gap", 1, &gap), Array::new("bonded", 1, &bonded)],
+        field: field_data(prov, &[], &faces),
+    })
+}
+
+// ---------------------------------------------------------------------------------------
+// Exporters
+
+pub fn write_vti(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    let text = vti_text(VolumeRef::from_artifact(a, "vti")?, prov)?;
+    write_text(path, &text)
+}
+
+pub fn write_vtp(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    let poly = match a {
+        Artifact::Packing(p) => packing_poly(p, prov)?,
+        Artifact::ContactGraph(g) => graph_poly(g, prov)?,
+        other => {
+            return Err(format!(
+                "vtp takes a Packing or a ContactGraph, not a {}",
+                other.kind()
+            ))
+        }
+    };
+    write_text(path, &poly.xml())
+}
+
+/// Writes every frame beside the `.pvd` (`<stem>_0000.vtp|vti`), then the collection.
+pub fn write_pvd(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    let Artifact::Series(series) = a else {
+        return Err(format!("pvd takes a Series, not a {}", a.kind()));
+    };
+    let ext = series_extension(series)?;
+    let stem = path
+        .file_stem()
+        .ok_or_else(|| format!("{}: no file name", path.display()))?
+        .to_string_lossy()
+        .into_owned();
+    let dir = path.parent().unwrap_or(Path::new(""));
+    let mut coll = String::from(
+        "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"1.0\" byte_order=\"LittleEndian\">\n<Collection>\n",
+    );
+    for (k, (t, frame)) in series.frames.iter().enumerate() {
+        let name = format!("{stem}_{k:04}.{ext}");
+        let mut p = prov.clone();
+        p.entries.insert("time".into(), num(*t));
+        match ext {
+            "vti" => write_vti(frame, &dir.join(&name), &p)?,
+            _ => write_vtp(frame, &dir.join(&name), &p)?,
+        }
+        coll.push_str(&format!(
+            "<DataSet timestep=\"{}\" group=\"\" part=\"0\" file=\"{}\"/>\n",
+            num(*t),
+            esc(&name)
+        ));
+    }
+    coll.push_str("</Collection>\n</VTKFile>\n");
+    write_text(path, &coll)
+}
+
+/// All frames must be of one kind that VTK XML holds; returns the frame extension.
+fn series_extension(s: &Series) -> Result<&'static str, String> {
+    let Some((_, first)) = s.frames.first() else {
+        return Err("the series has no frames".into());
+    };
+    let kind = first.kind();
+    if let Some((t, f)) = s.frames.iter().find(|(_, f)| f.kind() != kind) {
+        return Err(format!(
+            "series mixes {kind} and {} frames (at t = {t} s); a .pvd needs one kind",
+            f.kind()
+        ));
+    }
+    if s.frames.windows(2).any(|w| w[1].0 < w[0].0) {
+        return Err("series times must not decrease".into());
+    }
+    match kind {
+        ArtifactKind::PhaseImage | ArtifactKind::Field => Ok("vti"),
+        ArtifactKind::Packing | ArtifactKind::ContactGraph => Ok("vtp"),
+        k => Err(format!(
+            "a .pvd series holds images, fields, packings or contact graphs, not {k}"
+        )),
+    }
+}
+
+macro_rules! exporter {
+    ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr, $write:path) => {
+        pub struct $ty;
+        impl grainpipe_core::Exporter for $ty {
+            fn name(&self) -> &'static str { $name }
+            fn extensions(&self) -> &'static [&'static str] { $ext }
+            fn accepts(&self, kind: grainpipe_core::ArtifactKind) -> bool {
+                matches!(kind, $(grainpipe_core::ArtifactKind::$kind)|*)
+            }
+            fn doc(&self) -> &'static str { $doc }
+            fn write(
+                &self,
+                a: &grainpipe_core::Artifact,
+                path: &std::path::Path,
+                prov: &grainpipe_core::Provenance,
+            ) -> Result<(), String> {
+                $write(a, path, prov)
+            }
+        }
+    };
+}
+pub(crate) use exporter;
+
+exporter!(
+    VtiExporter,
+    "vti",
+    &["vti"],
+    [PhaseImage, Field],
+    "VTK XML ImageData: cell data `phase` (UInt8, phase table in field data) or the field's \
+     components; origin = lower grid corner, spacing = voxel size [m]",
+    write_vti
+);
+exporter!(
+    VtpExporter,
+    "vtp",
+    &["vtp"],
+    [Packing, ContactGraph],
+    "VTK XML PolyData: a packing as one point per sphere (radius, body_id, layer, frozen, \
+     body attributes) or a contact graph as lines (gap, bonded)",
+    write_vtp
+);
+exporter!(
+    PvdExporter,
+    "pvd",
+    &["pvd"],
+    [Series],
+    "ParaView collection: one .vti/.vtp per frame beside the .pvd, with time steps",
+    write_pvd
+);
+
+// ---------------------------------------------------------------------------------------
+// Reading
+
+/// A minimal element tree.
+#[derive(Debug, Default)]
+pub(crate) struct Node {
+    pub name: String,
+    pub attrs: Vec<(String, String)>,
+    pub text: String,
+    pub children: Vec<Node>,
+}
+
+impl Node {
+    pub fn attr(&self, k: &str) -> Option<&str> {
+        self.attrs
+            .iter()
+            .find(|(a, _)| a == k)
+            .map(|(_, v)| v.as_str())
+    }
+    pub fn child(&self, name: &str) -> Option<&Node> {
+        self.children.iter().find(|c| c.name == name)
+    }
+    /// Depth-first search for the first element named `name`.
+    pub fn find(&self, name: &str) -> Option<&Node> {
+        if self.name == name {
+            return Some(self);
+        }
+        self.children.iter().find_map(|c| c.find(name))
+    }
+}
+
+fn parse_xml(text: &str) -> Result<Node, String> {
+    use quick_xml::events::{BytesStart, Event};
+    let mut reader = quick_xml::Reader::from_str(text);
+    let mut stack: Vec<Node> = vec![Node::default()];
+    let open = |e: &BytesStart| -> Result<Node, String> {
+        let mut n = Node {
+            name: e.name().as_ref().to_string(),
+            ..Node::default()
+        };
+        for a in e.attributes() {
+            let a = a.map_err(|e| e.to_string())?;
+            let v = a
+                .normalized_value(quick_xml::XmlVersion::Implicit1_0)
+                .map_err(|e| e.to_string())?;
+            n.attrs.push((a.key.as_ref().to_string(), v.into_owned()));
+        }
+        Ok(n)
+    };
+    loop {
+        match reader
+            .read_event()
+            .map_err(|e| format!("malformed XML at byte {}: {e}", reader.buffer_position()))?
+        {
+            Event::Start(e) => stack.push(open(&e)?),
+            Event::Empty(e) => {
+                let n = open(&e)?;
+                stack.last_mut().expect("root").children.push(n);
+            }
+            Event::Text(t) => stack
+                .last_mut()
+                .expect("root")
+                .text
+                .push_str(&t.xml10_content()),
+            Event::End(_) => {
+                let n = stack.pop().expect("balanced");
+                stack.last_mut().ok_or("unbalanced XML")?.children.push(n);
+            }
+            Event::Eof => break,
+            _ => {}
+        }
+    }
+    if stack.len() != 1 {
+        return Err("XML ends inside an element (truncated file?)".into());
+    }
+    Ok(stack.pop().expect("root"))
+}
+
+/// A parsed VTK XML file with its appended-data block, if any.
+pub(crate) struct VtkFile {
+    pub root: Node,
+    appended: Vec<u8>,
+    appended_raw: bool,
+    header_u64: bool,
+    compressed: bool,
+    little: bool,
+}
+
+impl VtkFile {
+    pub fn open(path: &Path) -> Result<Self, String> {
+        let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
+        Self::parse(bytes).map_err(|e| format!("{}: {e}", path.display()))
+    }
+
+    fn parse(bytes: Vec<u8>) -> Result<Self, String> {
+        // Raw appended data is not text: cut it out before parsing the XML.
+        let (xml, appended, appended_raw) = match find(&bytes, b"<AppendedData") {
+            Some(start) => {
+                let tag_end =
+                    start + find(&bytes[start..], b">").ok_or("unterminated <AppendedData> tag")?;
+                let tag = String::from_utf8_lossy(&bytes[start..tag_end]).into_owned();
+                let raw = tag.contains("\"raw\"");
+                let underscore = tag_end
+                    + find(&bytes[tag_end..], b"_").ok_or("appended data lacks its `_` marker")?;
+                let end = rfind(&bytes, b"</AppendedData>")
+                    .ok_or("appended data is not closed (truncated file?)")?;
+                if end < underscore {
+                    return Err("appended data is not closed (truncated file?)".into());
+                }
+                let mut xml = bytes[..tag_end + 1].to_vec();
+                xml.extend_from_slice(&bytes[end..]);
+                let data = bytes[underscore + 1..end].to_vec();
+                (xml, data, raw)
+            }
+            None => (bytes, Vec::new(), false),
+        };
+        let text = String::from_utf8(xml).map_err(|_| "not a UTF-8 XML file")?;
+        let root = parse_xml(&text)?;
+        let vtk = root
+            .find("VTKFile")
+            .ok_or("no <VTKFile> element: not a VTK XML file")?;
+        let header_u64 = vtk.attr("header_type") == Some("UInt64");
+        let compressed = match vtk.attr("compressor") {
+            None | Some("") => false,
+            Some("vtkZLibDataCompressor") => true,
+            Some(c) => return Err(format!("compressor {c} is not supported (only zlib)")),
+        };
+        let little = vtk.attr("byte_order") != Some("BigEndian");
+        Ok(VtkFile {
+            root,
+            appended: appended
+                .iter()
+                .copied()
+                .filter(|b| appended_raw || !b.is_ascii_whitespace())
+                .collect(),
+            appended_raw,
+            header_u64,
+            compressed,
+            little,
+        })
+    }
+
+    fn hsize(&self) -> usize {
+        if self.header_u64 {
+            8
+        } else {
+            4
+        }
+    }
+
+    fn header_value(&self, b: &[u8]) -> usize {
+        if self.header_u64 {
+            u64::from_bytes(b, self.little) as usize
+        } else {
+            u32::from_bytes(b, self.little) as usize
+        }
+    }
+
+    /// The bytes of a binary or appended array (decompressed, in the file's byte order), or
+    /// the whitespace-separated tokens of an ascii array.
+    pub fn array_payload(&self, node: &Node) -> Result<Payload, String> {
+        let name = node.attr("Name").unwrap_or("?");
+        let ctx = |e: String| format!("array `{name}`: {e}");
+        match node.attr("format").unwrap_or("ascii") {
+            "ascii" => Ok(Payload::Ascii(
+                node.text.split_whitespace().map(str::to_string).collect(),
+            )),
+            "binary" => {
+                let text: Vec<u8> = node
+                    .text
+                    .bytes()
+                    .filter(|b| !b.is_ascii_whitespace())
+                    .collect();
+                self.binary_inline(&text).map(Payload::Bytes).map_err(ctx)
+            }
+            "appended" => {
+                let off: usize = node
+                    .attr("offset")
+                    .and_then(|o| o.parse().ok())
+                    .ok_or_else(|| ctx("appended array without offset".into()))?;
+                self.appended_at(off).map(Payload::Bytes).map_err(ctx)
+            }
+            f => Err(ctx(format!("unknown format `{f}`"))),
+        }
+    }
+
+    fn binary_inline(&self, text: &[u8]) -> Result<Vec<u8>, String> {
+        let hs = self.hsize();
+        let dec = |t: &[u8]| B64.decode(t).map_err(|e| format!("bad base64: {e}"));
+        if !self.compressed {
+            // Header and data are one base64 stream.
+            let all = dec(text)?;
+            let n = self.header_value(all.get(..hs).ok_or("truncated array")?);
+            return all
+                .get(hs..hs + n)
+                .map(|d| d.to_vec())
+                .ok_or_else(|| format!("array says {n} bytes but holds {}", all.len() - hs));
+        }
+        // Header and data are encoded separately; the header's length depends on its first
+        // entry (number of blocks).
+        let b64len = |bytes: usize| bytes.div_ceil(3) * 4;
+        let first = dec(text.get(..b64len(3 * hs)).ok_or("truncated header")?)?;
+        let nblocks = self.header_value(&first[..hs]);
+        let hlen = b64len((3 + nblocks) * hs);
+        let header = dec(text.get(..hlen).ok_or("truncated header")?)?;
+        let body = dec(&text[hlen..])?;
+        self.inflate(&header, &body)
+    }
+
+    fn appended_at(&self, off: usize) -> Result<Vec<u8>, String> {
+        let hs = self.hsize();
+        if !self.appended_raw {
+            // base64 appended data: each array is its own stream(s) starting at `off`.
+            let tail = self
+                .appended
+                .get(off..)
+                .ok_or("offset past the appended data")?;
+            return self.binary_inline(tail);
+        }
+        let a = &self.appended;
+        let at = |i: usize, n: usize| a.get(i..i + n).ok_or("appended data truncated");
+        if !self.compressed {
+            let n = self.header_value(at(off, hs)?);
+            return Ok(at(off + hs, n)?.to_vec());
+        }
+        let nblocks = self.header_value(at(off, hs)?);
+        let header = at(off, (3 + nblocks) * hs)?;
+        let csum: usize = (0..nblocks)
+            .map(|k| self.header_value(&header[(3 + k) * hs..(4 + k) * hs]))
+            .sum();
+        let body = at(off + header.len(), csum)?;
+        self.inflate(header, body)
+    }
+
+    fn inflate(&self, header: &[u8], body: &[u8]) -> Result<Vec<u8>, String> {
+        let hs = self.hsize();
+        let h: Vec<usize> = header
+            .chunks_exact(hs)
+            .map(|c| self.header_value(c))
+            .collect();
+        let (nblocks, bsize, last) = (h[0], h[1], h[2]);
+        let mut out = Vec::with_capacity(nblocks * bsize);
+        let mut pos = 0;
+        for k in 0..nblocks {
+            let c = h[3 + k];
+            let chunk = body.get(pos..pos + c).ok_or("compressed data truncated")?;
+            pos += c;
+            let before = out.len();
+            flate2::read::ZlibDecoder::new(chunk)
+                .read_to_end(&mut out)
+                .map_err(|e| format!("zlib: {e}"))?;
+            let expect = if k + 1 == nblocks && last != 0 {
+                last
+            } else {
+                bsize
+            };
+            if out.len() - before != expect {
+                return Err(format!(
+                    "block {k} inflates to {} bytes, header says {expect}",
+                    out.len() - before
+                ));
+            }
+        }
+        Ok(out)
+    }
+
+    /// Decodes an array as numbers of its declared type.
+    pub fn array_values(&self, node: &Node) -> Result<VolumeData, String> {
+        let ty = node.attr("type").unwrap_or("Float32");
+        let name = node.attr("Name").unwrap_or("?");
+        let payload = self.array_payload(node)?;
+        let little = self.little;
+        macro_rules! conv {
+            ($t:ty, $variant:ident, $map:expr) => {{
+                let v: Vec<$t> = match &payload {
+                    Payload::Bytes(b) => from_bytes::<$t>(b, little),
+                    Payload::Ascii(toks) => toks
+                        .iter()
+                        .map(|s| s.parse::<$t>())
+                        .collect::<Result<_, _>>()
+                        .map_err(|e| format!("array `{name}`: bad number: {e}"))?,
+                };
+                #[allow(clippy::redundant_closure_call)]
+                VolumeData::$variant(($map)(v))
+            }};
+        }
+        Ok(match ty {
+            "UInt8" => conv!(u8, U8, |v| v),
+            "Int8" => conv!(i8, I32, |v: Vec<i8>| v.into_iter().map(i32::from).collect()),
+            "UInt16" => conv!(u16, U16, |v| v),
+            "Int16" => conv!(i16, I32, |v: Vec<i16>| v
+                .into_iter()
+                .map(i32::from)
+                .collect()),
+            "Int32" => conv!(i32, I32, |v| v),
+            "UInt32" => conv!(u32, F64, |v: Vec<u32>| v
+                .into_iter()
+                .map(f64::from)
+                .collect()),
+            "Int64" => conv!(i64, F64, |v: Vec<i64>| v
+                .into_iter()
+                .map(|x| x as f64)
+                .collect()),
+            "UInt64" => conv!(u64, F64, |v: Vec<u64>| v
+                .into_iter()
+                .map(|x| x as f64)
+                .collect()),
+            "Float32" => conv!(f32, F32, |v| v),
+            "Float64" => conv!(f64, F64, |v| v),
+            t => return Err(format!("array `{name}`: type {t} is not numeric")),
+        })
+    }
+
+    /// Decodes a `String` array.
+    pub fn string_values(&self, node: &Node) -> Result<Vec<String>, String> {
+        let bytes: Vec<u8> = match self.array_payload(node)? {
+            Payload::Bytes(b) => b,
+            Payload::Ascii(t) => t
+                .iter()
+                .map(|s| s.parse::<u8>())
+                .collect::<Result<_, _>>()
+                .map_err(|e| format!("string array: {e}"))?,
+        };
+        let mut v: Vec<String> = bytes
+            .split(|&b| b == 0)
+            .map(|s| String::from_utf8_lossy(s).into_owned())
+            .collect();
+        v.pop(); // after the last terminator
+        Ok(v)
+    }
+
+    /// Field-data arrays by name.
+    pub fn field_array(&self, name: &str) -> Option<&Node> {
+        self.root
+            .find("FieldData")?
+            .children
+            .iter()
+            .find(|c| c.attr("Name") == Some(name))
+    }
+}
+
+pub(crate) enum Payload {
+    Bytes(Vec<u8>),
+    Ascii(Vec<String>),
+}
+
+fn find(h: &[u8], n: &[u8]) -> Option<usize> {
+    h.windows(n.len()).position(|w| w == n)
+}
+fn rfind(h: &[u8], n: &[u8]) -> Option<usize> {
+    h.windows(n.len()).rposition(|w| w == n)
+}
+
+fn parse_nums<const N: usize>(s: Option<&str>, what: &str) -> Result<Option<[f64; N]>, String> {
+    let Some(s) = s else { return Ok(None) };
+    let v: Vec<f64> = s
+        .split_whitespace()
+        .map(|t| t.parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("{what} `{s}`: {e}"))?;
+    v.try_into()
+        .map(Some)
+        .map_err(|_| format!("{what} `{s}` needs {N} numbers"))
+}
+
+/// Reads one array of a `.vti` as a [`Volume`]: `array` by name, or else the active cell
+/// scalars, the first cell array, or the first point array. Point data is taken as voxel
+/// centres (dims = points, origin moved back by half a voxel).
+pub fn read_vti(path: &Path, array: Option<&str>) -> Result<Volume, String> {
+    let f = VtkFile::open(path)?;
+    let at = |e: String| format!("{}: {e}", path.display());
+    let img = f
+        .root
+        .find("ImageData")
+        .ok_or_else(|| at("no <ImageData>: not a .vti image".into()))?;
+    let ext: [f64; 6] = parse_nums(img.attr("WholeExtent"), "WholeExtent")
+        .map_err(at)?
+        .ok_or_else(|| at("no WholeExtent".into()))?;
+    let ext = ext.map(|e| e as i64);
+    let spacing = parse_nums::<3>(img.attr("Spacing"), "Spacing").map_err(at)?;
+    let mut origin = parse_nums::<3>(img.attr("Origin"), "Origin").map_err(at)?;
+    if let Some(d) = parse_nums::<9>(img.attr("Direction"), "Direction").map_err(at)? {
+        let id = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+        if d.iter().zip(id).any(|(a, b)| (a - b).abs() > 1e-12) {
+            return Err(at(
+                "rotated images (Direction not identity) are not supported".into(),
+            ));
+        }
+    }
+    let piece = img.child("Piece").ok_or_else(|| at("no <Piece>".into()))?;
+    if img.children.iter().filter(|c| c.name == "Piece").count() > 1 {
+        return Err(at("multi-piece images are not supported".into()));
+    }
+    let arrays = |tag: &str| -> Vec<&Node> {
+        piece
+            .child(tag)
+            .map(|n| {
+                n.children
+                    .iter()
+                    .filter(|c| c.name == "DataArray")
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    let (cells, points) = (arrays("CellData"), arrays("PointData"));
+    let active = piece
+        .child("CellData")
+        .and_then(|c| c.attr("Scalars"))
+        .map(str::to_string);
+    let pick = |want: &str| -> Option<(&Node, bool)> {
+        cells
+            .iter()
+            .find(|a| a.attr("Name") == Some(want))
+            .map(|a| (*a, true))
+            .or_else(|| {
+                points
+                    .iter()
+                    .find(|a| a.attr("Name") == Some(want))
+                    .map(|a| (*a, false))
+            })
+    };
+    let (node, is_cell) = match array.or(active.as_deref()) {
+        Some(name) => pick(name),
+        None => cells
+            .first()
+            .map(|a| (*a, true))
+            .or_else(|| points.first().map(|a| (*a, false))),
+    }
+    .ok_or_else(|| {
+        let names: Vec<&str> = cells
+            .iter()
+            .chain(&points)
+            .filter_map(|a| a.attr("Name"))
+            .collect();
+        at(format!(
+            "no array {} (arrays: {names:?})",
+            array.map(|a| format!("`{a}`")).unwrap_or_default()
+        ))
+    })?;
+    let span = |a: usize| (ext[2 * a + 1] - ext[2 * a]).max(0) as usize;
+    let mut dims = [span(0), span(1), span(2)];
+    if is_cell {
+        // a 2-D image has a zero-thickness extent along z and one cell layer
+        dims = dims.map(|d| d.max(1));
+    } else {
+        dims = dims.map(|d| d + 1);
+        if let (Some(o), Some(s)) = (origin.as_mut(), spacing) {
+            for a in 0..3 {
+                o[a] -= 0.5 * s[a];
+            }
+        }
+    }
+    if let Some(o) = origin.as_mut() {
+        // a piece extent starting above 0 shifts the first voxel
+        for a in 0..3 {
+            o[a] += ext[2 * a] as f64 * spacing.map(|s| s[a]).unwrap_or(0.0);
+        }
+    }
+    let components: usize = node
+        .attr("NumberOfComponents")
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(1);
+    let data = f.array_values(node).map_err(at)?;
+    let expect = dims.iter().product::<usize>() * components;
+    if data.len() != expect {
+        return Err(at(format!(
+            "array `{}` holds {} values; extent {dims:?} x {components} components needs {expect}",
+            node.attr("Name").unwrap_or("?"),
+            data.len()
+        )));
+    }
+    let name = node.attr("Name").unwrap_or("values").to_string();
+    let strings = |n: &str| -> Result<Option<Vec<String>>, String> {
+        f.field_array(n)
+            .map(|a| f.string_values(a))
+            .transpose()
+            .map_err(at)
+    };
+    let mut phases = Vec::new();
+    if let (Some(ids), Some(names)) = (f.field_array("phase_ids"), strings("phase_names")?) {
+        let ids = f.array_values(ids).map_err(at)?;
+        if ids.len() == names.len() {
+            phases = (0..ids.len())
+                .map(|i| Phase {
+                    id: ids.get(i) as u8,
+                    name: names[i].clone(),
+                })
+                .collect();
+        }
+    }
+    let unit = strings("unit")?
+        .and_then(|u| u.into_iter().next())
+        .unwrap_or_default();
+    let mut periodic = [false; 3];
+    if let Some(p) = f.field_array("periodic") {
+        let p = f.array_values(p).map_err(at)?;
+        if p.len() == 3 {
+            periodic = [0, 1, 2].map(|a| p.get(a) != 0.0);
+        }
+    }
+    Ok(Volume {
+        name,
+        unit,
+        dims,
+        components,
+        spacing,
+        origin,
+        periodic,
+        data,
+        phases,
+    })
+}
+
+/// Checks a `.vti` header without reading its arrays (import preflight): streams the XML
+/// tags up to the chosen data array and returns the cell dims, the element type and the
+/// number of components.
+pub fn probe_vti(path: &Path, array: Option<&str>) -> Result<Probe, String> {
+    use quick_xml::events::Event;
+    let at = |e: &str| format!("{}: {e}", path.display());
+    let file = std::fs::File::open(path).map_err(|e| at(&e.to_string()))?;
+    let mut reader = quick_xml::Reader::from_reader(std::io::BufReader::new(file));
+    let mut buf = Vec::new();
+    let mut ext: Option<[f64; 6]> = None;
+    let (mut spacing, mut origin) = (None, None);
+    let mut section: Option<(bool, Option<String>)> = None; // (is cell data, active scalars)
+    let attr = |e: &quick_xml::events::BytesStart, k: &str| -> Option<String> {
+        e.try_get_attribute(k)
+            .ok()
+            .flatten()
+            .map(|a| a.value.to_string())
+    };
+    let mut seen_vtk = false;
+    loop {
+        let ev = reader
+            .read_event_into(&mut buf)
+            .map_err(|e| at(&format!("malformed XML: {e}")))?;
+        match ev {
+            Event::Start(ref e) | Event::Empty(ref e) => match e.name().as_ref() {
+                "VTKFile" => seen_vtk = true,
+                "ImageData" => {
+                    ext = parse_nums(attr(e, "WholeExtent").as_deref(), "WholeExtent")
+                        .map_err(|m| at(&m))?;
+                    spacing = parse_nums::<3>(attr(e, "Spacing").as_deref(), "Spacing")
+                        .map_err(|m| at(&m))?;
+                    origin = parse_nums::<3>(attr(e, "Origin").as_deref(), "Origin")
+                        .map_err(|m| at(&m))?;
+                }
+                "CellData" | "PointData" => {
+                    section = Some((e.name().as_ref() == "CellData", attr(e, "Scalars")))
+                }
+                "DataArray" => {
+                    if let Some((cell, active)) = &section {
+                        let name = attr(e, "Name");
+                        let want = array.map(str::to_string).or(active.clone());
+                        if want.is_none() || name == want {
+                            let ext = ext.ok_or_else(|| at("no ImageData WholeExtent"))?;
+                            let span = |a: usize| (ext[2 * a + 1] - ext[2 * a]).max(0.0) as usize;
+                            let dims =
+                                [0, 1, 2].map(|a| if *cell { span(a).max(1) } else { span(a) + 1 });
+                            let components = attr(e, "NumberOfComponents")
+                                .and_then(|c| c.parse().ok())
+                                .unwrap_or(1);
+                            let dtype = attr(e, "type").unwrap_or("Float32".into());
+                            let elem_bytes = match dtype.as_str() {
+                                "Int8" | "UInt8" => 1,
+                                "Int16" | "UInt16" => 2,
+                                "Int32" | "UInt32" | "Float32" => 4,
+                                "Int64" | "UInt64" | "Float64" => 8,
+                                t => return Err(at(&format!("array type {t} is not numeric"))),
+                            };
+                            if let (false, Some(o), Some(s)) = (*cell, origin.as_mut(), spacing) {
+                                for a in 0..3 {
+                                    o[a] -= 0.5 * s[a];
+                                }
+                            }
+                            return Ok(Probe {
+                                dims,
+                                components,
+                                dtype,
+                                elem_bytes,
+                                spacing,
+                                origin,
+                            });
+                        }
+                    }
+                }
+                "AppendedData" => break,
+                _ => {}
+            },
+            Event::End(ref e) if matches!(e.name().as_ref(), "CellData" | "PointData") => {
+                section = None
+            }
+            Event::Eof => break,
+            _ => {}
+        }
+        buf.clear();
+    }
+    if !seen_vtk {
+        return Err(at("not a VTK XML file"));
+    }
+    Err(at(&match array {
+        Some(a) => format!("no data array `{a}`"),
+        None => "no data array".to_string(),
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use grainpipe_core::{
+        Body, BodyAttribute, BodyShape, Clump, ClumpLibrary, ClumpSphere, Contact, Domain,
+    };
+
+    fn node_named<'a>(n: &'a Node, tag: &str, name: &str) -> &'a Node {
+        fn walk<'a>(n: &'a Node, tag: &str, name: &str) -> Option<&'a Node> {
+            if n.name == tag && n.attr("Name") == Some(name) {
+                return Some(n);
+            }
+            n.children.iter().find_map(|c| walk(c, tag, name))
+        }
+        walk(n, tag, name).unwrap_or_else(|| panic!("no {tag} {name}"))
+    }
+
+    fn f64s(f: &VtkFile, tag: &str, name: &str) -> Vec<f64> {
+        let d = f.array_values(node_named(&f.root, tag, name)).unwrap();
+        (0..d.len()).map(|i| d.get(i)).collect()
+    }
+
+    #[test]
+    fn vtp_packing_expands_clumps_and_replicates_attributes() {
+        let mut p = Packing::new(Domain::boxed([0.0; 3], [1.0; 3], [false; 3]));
+        p.bodies.push(Body::sphere([0.1, 0.2, 0.3], 0.05));
+        let mut b = Body::sphere([0.5, 0.5, 0.5], 0.0);
+        b.shape = BodyShape::Clump { index: 0 };
+        // 180 degrees about z: offset (+0.1, 0, 0) lands at x = 0.4
+        b.orientation = [0.0, 0.0, 0.0, 1.0];
+        b.layer = 2;
+        p.bodies.push(b);
+        p.library = Some(ClumpLibrary {
+            clumps: vec![Clump {
+                spheres: vec![
+                    ClumpSphere {
+                        offset: [0.1, 0.0, 0.0],
+                        radius: 0.07,
+                    },
+                    ClumpSphere {
+                        offset: [0.0, 0.0, 0.1],
+                        radius: 0.06,
+                    },
+                ],
+                volume: 1.0,
+                bounding_radius: 0.2,
+                principal_inertia: [1.0; 3],
+                principal_axes: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                source: String::new(),
+            }],
+            source: String::new(),
+        });
+        p.attributes.insert(
+            "T".into(),
+            BodyAttribute {
+                unit: "K".into(),
+                values: vec![10.0, 20.0],
+            },
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.vtp");
+        write_vtp(&Artifact::Packing(p), &path, &Provenance::default()).unwrap();
+        let f = VtkFile::open(&path).unwrap();
+        assert_eq!(f64s(&f, "DataArray", "radius"), [0.05, 0.07, 0.06]);
+        assert_eq!(f64s(&f, "DataArray", "body_id"), [0.0, 1.0, 1.0]);
+        assert_eq!(f64s(&f, "DataArray", "layer"), [0.0, 2.0, 2.0]);
+        assert_eq!(f64s(&f, "DataArray", "T"), [10.0, 20.0, 20.0]);
+        let pts = f64s(&f, "DataArray", "Points");
+        let want = [0.1, 0.2, 0.3, 0.4, 0.5, 0.5, 0.5, 0.5, 0.6];
+        // one rotation of unit vectors: exact to a few ulps
+        assert!(
+            pts.iter().zip(want).all(|(a, b)| (a - b).abs() < 1e-15),
+            "{pts:?}"
+        );
+        assert_eq!(f64s(&f, "DataArray", "offsets"), [1.0, 2.0, 3.0]);
+    }
+
+    #[test]
+    fn vtp_graph_draws_contacts_then_extra_bonds() {
+        let g = ContactGraph {
+            contacts: vec![Contact {
+                i: 0,
+                j: 1,
+                gap: -1e-6,
+            }],
+            faces: Default::default(),
+            bonds: vec![[1, 0], [1, 2]],
+            positions: vec![[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]],
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("g.vtp");
+        write_vtp(
+            &Artifact::ContactGraph(g.clone()),
+            &path,
+            &Provenance::default(),
+        )
+        .unwrap();
+        let f = VtkFile::open(&path).unwrap();
+        assert_eq!(f64s(&f, "DataArray", "connectivity"), [0.0, 1.0, 1.0, 2.0]);
+        assert_eq!(f64s(&f, "DataArray", "bonded"), [1.0, 1.0]);
+        let gap = f64s(&f, "DataArray", "gap");
+        assert_eq!(gap[0], -1e-6);
+        assert!(gap[1].is_nan());
+        assert_eq!(f64s(&f, "DataArray", "coordination"), [1.0, 1.0, 0.0]);
+        // a pair past the positions is refused
+        let mut bad = g;
+        bad.contacts[0].j = 9;
+        let e = write_vtp(&Artifact::ContactGraph(bad), &path, &Provenance::default()).unwrap_err();
+        assert!(e.contains("(0, 9)"), "{e}");
+    }
+
+    #[test]
+    fn pvd_writes_frames_then_collection() {
+        let img = |v: u8| {
+            Artifact::PhaseImage(grainpipe_core::PhaseImage {
+                grid: grainpipe_core::Grid {
+                    dims: [2, 1, 1],
+                    spacing: [1.0; 3],
+                    origin: [0.0; 3],
+                    periodic: [false; 3],
+                },
+                labels: vec![v, 0],
+                phases: vec![],
+            })
+        };
+        let s = Series {
+            frames: vec![(0.0, img(1)), (0.25, img(2)), (1.5, img(3))],
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.pvd");
+        write_pvd(&Artifact::Series(s), &path, &Provenance::default()).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let root = parse_xml(&text).unwrap();
+        let sets: Vec<&Node> = root.find("Collection").unwrap().children.iter().collect();
+        assert_eq!(sets.len(), 3);
+        for (k, (t, set)) in [0.0, 0.25, 1.5].iter().zip(sets).enumerate() {
+            assert_eq!(set.attr("timestep").unwrap().parse::<f64>().unwrap(), *t);
+            let file = dir.path().join(set.attr("file").unwrap());
+            assert_eq!(file, dir.path().join(format!("run_{k:04}.vti")));
+            let v = read_vti(&file, None).unwrap();
+            assert_eq!(v.data, VolumeData::U8(vec![k as u8 + 1, 0]));
+        }
+        // mixed kinds are refused before anything is written
+        let mixed = Series {
+            frames: vec![(0.0, img(1)), (1.0, Artifact::Table(Default::default()))],
+        };
+        let p2 = dir.path().join("mixed.pvd");
+        assert!(write_pvd(&Artifact::Series(mixed), &p2, &Provenance::default()).is_err());
+        assert!(!p2.exists() && !dir.path().join("mixed_0000.vti").exists());
+    }
+}
