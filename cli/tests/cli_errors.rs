@@ -190,3 +190,19 @@ fn readme_stage_table_is_generated_from_the_registry() {
         "README.md's stage table is out of date: run `make readme-stages`"
     );
 }
+
+#[test]
+fn output_not_selected_by_parameters_is_refused_before_running() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("v.raw"), vec![0u8; 8]).unwrap();
+    let yaml = "name: t\nstages:\n  - id: img\n    use: import.raw\n    with: {path: v.raw, dims: [2, 2, 2], spacing: 1 um, as: phase_image}\nexport:\n  - {from: img.field, to: out/f.vti}\n";
+    std::fs::write(dir.path().join("p.yaml"), yaml).unwrap();
+    let (code, _, err) = pipe(&["run", "p.yaml"], dir.path());
+    assert_eq!(code, 2, "{err}");
+    assert!(err.contains("p.yaml:7:") && err.contains("will not give output `field`") && err.contains("img.image"), "{err}");
+    // The selected output runs and exports.
+    std::fs::write(dir.path().join("p.yaml"), yaml.replace("img.field", "img.image")).unwrap();
+    let (code, _, err) = pipe(&["run", "p.yaml", "--quiet"], dir.path());
+    assert_eq!(code, 0, "{err}");
+    assert!(dir.path().join("out/f.vti").exists());
+}
