@@ -16,6 +16,7 @@ pub fn builtin_registry() -> Registry {
     let mut r = Registry::new();
     grainpipe_formats::register(&mut r);
     grainpipe_geometry::register(&mut r);
+    grainpipe_bricks::register(&mut r);
     r
 }
 

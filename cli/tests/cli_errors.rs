@@ -199,9 +199,18 @@ fn output_not_selected_by_parameters_is_refused_before_running() {
     std::fs::write(dir.path().join("p.yaml"), yaml).unwrap();
     let (code, _, err) = pipe(&["run", "p.yaml"], dir.path());
     assert_eq!(code, 2, "{err}");
-    assert!(err.contains("p.yaml:7:") && err.contains("will not give output `field`") && err.contains("img.image"), "{err}");
+    assert!(
+        err.contains("p.yaml:7:")
+            && err.contains("will not give output `field`")
+            && err.contains("img.image"),
+        "{err}"
+    );
     // The selected output runs and exports.
-    std::fs::write(dir.path().join("p.yaml"), yaml.replace("img.field", "img.image")).unwrap();
+    std::fs::write(
+        dir.path().join("p.yaml"),
+        yaml.replace("img.field", "img.image"),
+    )
+    .unwrap();
     let (code, _, err) = pipe(&["run", "p.yaml", "--quiet"], dir.path());
     assert_eq!(code, 0, "{err}");
     assert!(dir.path().join("out/f.vti").exists());

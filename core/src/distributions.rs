@@ -22,6 +22,7 @@ use rand::Rng;
 use serde::{Deserialize, Serialize};
 use statrs::distribution::{Beta as SBeta, ContinuousCDF, Gamma as SGamma};
 use statrs::function::{erf, gamma as gfn};
+use std::cmp::Ordering;
 
 type Len = Q<Length>;
 
@@ -201,13 +202,16 @@ impl SizeDistribution {
                     ));
                 }
                 for (i, w) in points.windows(2).enumerate() {
-                    if !(w[1].0.si() > w[0].0.si()) {
+                    if w[1].0.si().partial_cmp(&w[0].0.si()) != Some(Ordering::Greater) {
                         return Err((
                             "points",
                             format!("sizes must increase strictly (point {} vs {})", i, i + 1),
                         ));
                     }
-                    if !(w[1].1 >= w[0].1) {
+                    if !matches!(
+                        w[1].1.partial_cmp(&w[0].1),
+                        Some(Ordering::Greater | Ordering::Equal)
+                    ) {
                         return Err((
                             "points",
                             format!("probabilities must not decrease (point {} vs {})", i, i + 1),
@@ -240,14 +244,14 @@ impl SizeDistribution {
             }
         }
         let (lo, hi) = self.bounds();
-        if !(hi > lo) && !matches!(self, Fixed { .. }) {
+        if hi.partial_cmp(&lo) != Some(Ordering::Greater) && !matches!(self, Fixed { .. }) {
             return Err((
                 "min",
                 format!("the truncation interval [{lo}, {hi}] m (sizes are also > 0) is empty"),
             ));
         }
         let mass = self.base_cdf(hi) - self.base_cdf(lo);
-        if !(mass > 1e-12) && !matches!(self, Fixed { .. }) {
+        if mass.partial_cmp(&1e-12) != Some(Ordering::Greater) && !matches!(self, Fixed { .. }) {
             return Err((
                 "min",
                 format!(
@@ -549,12 +553,12 @@ impl SizeDistribution {
 fn integrate(f: impl Fn(f64) -> f64, a: f64, b: f64, panels: usize) -> f64 {
     const X: [f64; 4] = [
         0.183_434_642_495_649_8,
-        0.525_532_409_916_329_0,
+        0.525_532_409_916_329,
         0.796_666_477_413_626_7,
         0.960_289_856_497_536_3,
     ];
     const W: [f64; 4] = [
-        0.362_683_783_378_362_0,
+        0.362_683_783_378_362,
         0.313_706_645_877_887_3,
         0.222_381_034_453_374_5,
         0.101_228_536_290_376_3,

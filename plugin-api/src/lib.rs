@@ -549,7 +549,8 @@ fn panic_message(p: Box<dyn std::any::Any + Send>) -> String {
 }
 
 /// What an entry point does once its arguments are checked.
-type EntryBody<'a> = &'a dyn Fn(&dyn PluginStage, &str, &[ArtifactView], &GpHost) -> Result<(), Failure>;
+type EntryBody<'a> =
+    &'a dyn Fn(&dyn PluginStage, &str, &[ArtifactView], &GpHost) -> Result<(), Failure>;
 
 /// Shared body of the exported entry points: validate arguments, call, catch panics.
 fn call<S: StageSet>(

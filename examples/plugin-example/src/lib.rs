@@ -44,8 +44,14 @@ fn params(json: &str) -> Result<Params, Failure> {
     })
 }
 
-/// dims, spacing and origin of the image's grid from its metadata.
-fn grid(image: &ArtifactView) -> Result<([usize; 3], [f64; 3], [f64; 3]), Failure> {
+/// The image grid as read from the metadata JSON.
+struct Grid {
+    dims: [usize; 3],
+    spacing: [f64; 3],
+    origin: [f64; 3],
+}
+
+fn grid(image: &ArtifactView) -> Result<Grid, Failure> {
     let bad = |m: &str| Failure::Input {
         port: "image".into(),
         message: m.into(),
@@ -65,11 +71,11 @@ fn grid(image: &ArtifactView) -> Result<([usize; 3], [f64; 3], [f64; 3]), Failur
         ])
     };
     let d = arr("dims")?;
-    Ok((
-        [d[0] as usize, d[1] as usize, d[2] as usize],
-        arr("spacing")?,
-        arr("origin")?,
-    ))
+    Ok(Grid {
+        dims: [d[0] as usize, d[1] as usize, d[2] as usize],
+        spacing: arr("spacing")?,
+        origin: arr("origin")?,
+    })
 }
 
 impl PluginStage for PorosityProfile {
@@ -138,7 +144,11 @@ impl PluginStage for PorosityProfile {
             .iter()
             .find(|i| i.port() == "image")
             .ok_or(Failure::Failed("no image".into()))?;
-        let (dims, spacing, origin) = grid(image)?;
+        let Grid {
+            dims,
+            spacing,
+            origin,
+        } = grid(image)?;
         let labels = image
             .array("labels")
             .and_then(|a| a.as_u8())

@@ -25,7 +25,13 @@ impl CellList {
     pub fn new(size: [f64; 3], periodic: [bool; 3], min_cell: f64) -> Self {
         let n = [0, 1, 2].map(|a| ((size[a] / min_cell).floor() as usize).clamp(1, 1024));
         let cell = [0, 1, 2].map(|a| size[a] / n[a] as f64);
-        CellList { size, periodic, n, cell, items: vec![Vec::new(); n[0] * n[1] * n[2]] }
+        CellList {
+            size,
+            periodic,
+            n,
+            cell,
+            items: vec![Vec::new(); n[0] * n[1] * n[2]],
+        }
     }
 
     fn coord(&self, x: f64, a: usize) -> usize {

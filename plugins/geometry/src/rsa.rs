@@ -34,7 +34,9 @@ impl Default for RsaParams {
     fn default() -> Self {
         RsaParams {
             size: [Q::new(500e-6); 3],
-            radius: SizeDistribution::Fixed { value: Q::new(25e-6) },
+            radius: SizeDistribution::Fixed {
+                value: Q::new(25e-6),
+            },
             volume_fraction: 0.30,
             periodic: [true; 3],
             max_attempts_per_sphere: 200_000,
@@ -84,24 +86,56 @@ impl TypedStage for Rsa {
                   sphere that finds no place within max_attempts_per_sphere stops the stage with \
                   the fraction reached.",
             params: vec![
-                ParamSpec { name: "size", ty: "[x, y, z] lengths", unit: "m", doc: "box edge lengths" },
-                ParamSpec { name: "radius", ty: "size distribution", unit: "m", doc: "sphere radius law, e.g. {kind: fixed, value: 25 um}" },
-                ParamSpec { name: "volume_fraction", ty: "number in (0, 0.6)", unit: "", doc: "target solid volume fraction" },
-                ParamSpec { name: "periodic", ty: "[bool, bool, bool]", unit: "", doc: "periodic axes; other axes keep spheres inside the box" },
-                ParamSpec { name: "max_attempts_per_sphere", ty: "integer", unit: "", doc: "random positions tried for one sphere before the stage fails" },
+                ParamSpec {
+                    name: "size",
+                    ty: "[x, y, z] lengths",
+                    unit: "m",
+                    doc: "box edge lengths",
+                },
+                ParamSpec {
+                    name: "radius",
+                    ty: "size distribution",
+                    unit: "m",
+                    doc: "sphere radius law, e.g. {kind: fixed, value: 25 um}",
+                },
+                ParamSpec {
+                    name: "volume_fraction",
+                    ty: "number in (0, 0.6)",
+                    unit: "",
+                    doc: "target solid volume fraction",
+                },
+                ParamSpec {
+                    name: "periodic",
+                    ty: "[bool, bool, bool]",
+                    unit: "",
+                    doc: "periodic axes; other axes keep spheres inside the box",
+                },
+                ParamSpec {
+                    name: "max_attempts_per_sphere",
+                    ty: "integer",
+                    unit: "",
+                    doc: "random positions tried for one sphere before the stage fails",
+                },
             ],
             inputs: vec![],
             outputs: vec![
                 PortSpec::new("packing", ArtifactKind::Packing, "the spheres"),
-                PortSpec::new("report", ArtifactKind::Table, "target and achieved volume fraction, spheres, attempts"),
+                PortSpec::new(
+                    "report",
+                    ArtifactKind::Table,
+                    "target and achieved volume fraction, spheres, attempts",
+                ),
             ],
         }
     }
 
     fn preflight(&self, p: &RsaParams, _inputs: &InputMetas) -> Result<Preflight, StageError> {
         let size = p.size.map(|q| q.si());
-        if size.iter().any(|s| !(*s > 0.0) || !s.is_finite()) {
-            return Err(StageError::param("size", "every box edge must be a positive length"));
+        if size.iter().any(|s| !s.is_finite() || *s <= 0.0) {
+            return Err(StageError::param(
+                "size",
+                "every box edge must be a positive length",
+            ));
         }
         p.radius
             .validate()
@@ -109,7 +143,9 @@ impl TypedStage for Rsa {
         if !(p.volume_fraction > 0.0 && p.volume_fraction < 1.0) {
             return Err(StageError::param("volume_fraction", "must be in (0, 1)"));
         }
-        if matches!(p.radius, SizeDistribution::Fixed { .. }) && p.volume_fraction > RSA_JAMMING_LIMIT {
+        if matches!(p.radius, SizeDistribution::Fixed { .. })
+            && p.volume_fraction > RSA_JAMMING_LIMIT
+        {
             return Err(StageError::param(
                 "volume_fraction",
                 format!(
@@ -120,17 +156,26 @@ impl TypedStage for Rsa {
             ));
         }
         if p.max_attempts_per_sphere == 0 {
-            return Err(StageError::param("max_attempts_per_sphere", "must be at least 1"));
+            return Err(StageError::param(
+                "max_attempts_per_sphere",
+                "must be at least 1",
+            ));
         }
         let (_, rmax) = p.radius.bounds();
-        let rmax = if rmax.is_finite() { rmax } else { p.radius.practical_max() };
-        for a in 0..3 {
-            if !p.periodic[a] && 2.0 * rmax >= size[a] {
-                return Err(StageError::param("size", format!(
-                    "axis {a} is {:.3e} m, not larger than the largest sphere diameter {:.3e} m",
-                    size[a],
-                    2.0 * rmax
-                )));
+        let rmax = if rmax.is_finite() {
+            rmax
+        } else {
+            p.radius.practical_max()
+        };
+        for (a, (&len, &periodic)) in size.iter().zip(&p.periodic).enumerate() {
+            if !periodic && 2.0 * rmax >= len {
+                return Err(StageError::param(
+                    "size",
+                    format!(
+                        "axis {a} is {len:.3e} m, not larger than the largest sphere diameter {:.3e} m",
+                        2.0 * rmax
+                    ),
+                ));
             }
         }
         let volume: f64 = size.iter().product();
@@ -149,7 +194,12 @@ impl TypedStage for Rsa {
         Ok(pf)
     }
 
-    fn run(&self, p: &RsaParams, _inputs: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
+    fn run(
+        &self,
+        p: &RsaParams,
+        _inputs: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
         let size = p.size.map(|q| q.si());
         let volume: f64 = size.iter().product();
         let mut rng = ctx.rng();
@@ -197,7 +247,9 @@ impl TypedStage for Rsa {
             }
         }
         let achieved = placed_volume / volume;
-        ctx.info(&format!("{n} spheres, volume fraction {achieved:.4}, {attempts_total} attempts"));
+        ctx.info(&format!(
+            "{n} spheres, volume fraction {achieved:.4}, {attempts_total} attempts"
+        ));
         let report = Table::new("rsa")
             .with_f64("target_volume_fraction", "1", vec![p.volume_fraction])
             .with_f64("volume_fraction", "1", vec![achieved])

@@ -3,7 +3,7 @@
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     input, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, Packing,
-    Phase, PhaseImage, ParamSpec, PortSpec, Preflight, RunContext, StageError, StageInfo, Table,
+    ParamSpec, Phase, PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table,
     TypedStage, WorldSphere,
 };
 use rayon::prelude::*;
@@ -45,7 +45,12 @@ fn grid_for(box_min: [f64; 3], box_max: [f64; 3], periodic: [bool; 3], voxel: f6
     let dims = [0, 1, 2].map(|a| ((size[a] / voxel).round() as usize).max(1));
     // The spacing is adjusted so that the voxels tile the box exactly.
     let spacing = [0, 1, 2].map(|a| size[a] / dims[a] as f64);
-    Grid { dims, spacing, origin: box_min, periodic }
+    Grid {
+        dims,
+        spacing,
+        origin: box_min,
+        periodic,
+    }
 }
 
 fn voxel_size(p: &VoxelizeParams, mean_diameter: f64) -> f64 {
@@ -97,13 +102,24 @@ impl TypedStage for Voxelize {
 
     fn preflight(&self, p: &VoxelizeParams, inputs: &InputMetas) -> Result<Preflight, StageError> {
         if p.voxel_size.si() < 0.0 || !p.voxel_size.si().is_finite() {
-            return Err(StageError::param("voxel_size", "must be a positive length, or 0"));
+            return Err(StageError::param(
+                "voxel_size",
+                "must be a positive length, or 0",
+            ));
         }
-        if p.voxel_size.si() == 0.0 && !(p.voxels_per_diameter >= 1.0) {
-            return Err(StageError::param("voxels_per_diameter", "must be at least 1"));
+        if p.voxel_size.si() == 0.0
+            && (p.voxels_per_diameter.is_nan() || p.voxels_per_diameter < 1.0)
+        {
+            return Err(StageError::param(
+                "voxels_per_diameter",
+                "must be at least 1",
+            ));
         }
         if !(1..=16).contains(&p.supersampling) {
-            return Err(StageError::param("supersampling", "must be between 1 and 16"));
+            return Err(StageError::param(
+                "supersampling",
+                "must be between 1 and 16",
+            ));
         }
         let meta = inputs.get("packing");
         let mut out = ArtifactMeta::of(ArtifactKind::PhaseImage);
@@ -112,11 +128,14 @@ impl TypedStage for Voxelize {
             let scale = meta.and_then(|m| m.length_scale);
             if p.voxel_size.si() > 0.0 || scale.is_some() {
                 let v = voxel_size(p, scale.unwrap_or(0.0));
-                let n: f64 = (0..3).map(|a| ((hi[a] - lo[a]) / v).round().max(1.0)).product();
+                let n: f64 = (0..3)
+                    .map(|a| ((hi[a] - lo[a]) / v).round().max(1.0))
+                    .product();
                 if n > MAX_VOXELS {
-                    return Err(StageError::param("voxel_size", format!(
-                        "{n:.3e} voxels: more than {MAX_VOXELS:.0e}; use a larger voxel"
-                    )));
+                    return Err(StageError::param(
+                        "voxel_size",
+                        format!("{n:.3e} voxels: more than {MAX_VOXELS:.0e}; use a larger voxel"),
+                    ));
                 }
                 out.grid = Some(grid_for(lo, hi, [false; 3], v));
                 memory = n as u64;
@@ -127,26 +146,43 @@ impl TypedStage for Voxelize {
         Ok(pf)
     }
 
-    fn run(&self, p: &VoxelizeParams, inputs: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
+    fn run(
+        &self,
+        p: &VoxelizeParams,
+        inputs: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
         let packing = input(inputs, "packing", Artifact::as_packing)?;
         if packing.bodies.is_empty() {
             return Err(StageError::input("packing", "the packing has no bodies"));
         }
         let d = &packing.domain;
         let v = voxel_size(p, mean_diameter(packing));
-        let n: f64 = (0..3).map(|a| ((d.max[a] - d.min[a]) / v).round().max(1.0)).product();
+        let n: f64 = (0..3)
+            .map(|a| ((d.max[a] - d.min[a]) / v).round().max(1.0))
+            .product();
         if n > MAX_VOXELS {
-            return Err(StageError::param("voxel_size", format!("{n:.3e} voxels: use a larger voxel")));
+            return Err(StageError::param(
+                "voxel_size",
+                format!("{n:.3e} voxels: use a larger voxel"),
+            ));
         }
         let grid = grid_for(d.min, d.max, d.periodic, v);
         let spheres = packing.world_spheres();
-        let (labels, coverage) = voxelize(&grid, &spheres, d.periodic, p.supersampling as usize, ctx)?;
+        let (labels, coverage) =
+            voxelize(&grid, &spheres, d.periodic, p.supersampling as usize, ctx)?;
         let image = PhaseImage {
             grid: grid.clone(),
             labels,
             phases: vec![
-                Phase { id: 0, name: "pore".into() },
-                Phase { id: 1, name: p.phase_name.clone() },
+                Phase {
+                    id: 0,
+                    name: "pore".into(),
+                },
+                Phase {
+                    id: 1,
+                    name: p.phase_name.clone(),
+                },
             ],
         };
         let analytic = packing.volume_fraction();

@@ -18,9 +18,16 @@ fn run_rsa(p: &RsaParams, seed: u64) -> Result<Packing, StageError> {
 fn voxelize(packing: &Packing, p: &VoxelizeParams) -> (grainpipe_core::PhaseImage, f64) {
     let ctx = RunContext::new(0, &SilentReporter);
     let mut inputs = Inputs::new();
-    inputs.insert("packing".into(), Arc::new(Artifact::Packing(packing.clone())));
+    inputs.insert(
+        "packing".into(),
+        Arc::new(Artifact::Packing(packing.clone())),
+    );
     let out = Voxelize.run(p, &inputs, &ctx).unwrap();
-    let cov = out["report"].as_table().unwrap().f64_column("coverage_fraction").unwrap()[0];
+    let cov = out["report"]
+        .as_table()
+        .unwrap()
+        .f64_column("coverage_fraction")
+        .unwrap()[0];
     (out["image"].as_phase_image().unwrap().clone(), cov)
 }
 
@@ -49,7 +56,10 @@ fn max_overlap(p: &Packing) -> f64 {
 #[test]
 fn rsa_reaches_target_without_overlap() {
     let p = RsaParams {
-        radius: SizeDistribution::Uniform { min: Q::new(15e-6), max: Q::new(30e-6) },
+        radius: SizeDistribution::Uniform {
+            min: Q::new(15e-6),
+            max: Q::new(30e-6),
+        },
         volume_fraction: 0.30,
         ..Default::default()
     };
@@ -59,7 +69,11 @@ fn rsa_reaches_target_without_overlap() {
     let one_sphere = 4.0 / 3.0 * PI * (30e-6f64).powi(3) / packing.domain.volume();
     assert!(phi >= 0.30 && phi < 0.30 + one_sphere, "phi = {phi}");
     // Overlap tolerance: zero up to round-off of the centre coordinates (1e-18 m).
-    assert!(max_overlap(&packing) <= 1e-18, "overlap {}", max_overlap(&packing));
+    assert!(
+        max_overlap(&packing) <= 1e-18,
+        "overlap {}",
+        max_overlap(&packing)
+    );
     // Every centre lies in the periodic box.
     for b in &packing.bodies {
         assert!(b.position.iter().all(|&x| (0.0..500e-6).contains(&x)));
@@ -68,7 +82,11 @@ fn rsa_reaches_target_without_overlap() {
 
 #[test]
 fn rsa_non_periodic_keeps_spheres_inside() {
-    let p = RsaParams { periodic: [false, false, true], volume_fraction: 0.2, ..Default::default() };
+    let p = RsaParams {
+        periodic: [false, false, true],
+        volume_fraction: 0.2,
+        ..Default::default()
+    };
     let packing = run_rsa(&p, 3).unwrap();
     for b in &packing.bodies {
         for a in 0..2 {
@@ -90,7 +108,10 @@ fn rsa_same_seed_same_packing_different_seed_different() {
 
 #[test]
 fn rsa_refuses_monodisperse_fraction_above_jamming_limit() {
-    let p = RsaParams { volume_fraction: 0.45, ..Default::default() };
+    let p = RsaParams {
+        volume_fraction: 0.45,
+        ..Default::default()
+    };
     match Rsa.preflight(&p, &Default::default()) {
         Err(StageError::InvalidParam { key, message }) => {
             assert_eq!(key, "volume_fraction");
@@ -106,14 +127,20 @@ fn rsa_jams_loudly_on_unreachable_polydisperse_target() {
     // the ~0.38 RSA saturation, so a sphere must run out of attempts.
     let p = RsaParams {
         size: [Q::new(300e-6); 3],
-        radius: SizeDistribution::Uniform { min: Q::new(24e-6), max: Q::new(26e-6) },
+        radius: SizeDistribution::Uniform {
+            min: Q::new(24e-6),
+            max: Q::new(26e-6),
+        },
         volume_fraction: 0.55,
         max_attempts_per_sphere: 2_000,
         ..Default::default()
     };
     match run_rsa(&p, 1) {
         Err(StageError::Failed(m)) => {
-            assert!(m.contains("jammed") && m.contains("volume fraction reached"), "{m}");
+            assert!(
+                m.contains("jammed") && m.contains("volume fraction reached"),
+                "{m}"
+            );
         }
         other => panic!("expected failure, got {:?}", other.map(|p| p.bodies.len())),
     }
@@ -121,49 +148,101 @@ fn rsa_jams_loudly_on_unreachable_polydisperse_target() {
 
 #[test]
 fn voxelized_single_sphere_matches_analytic_volume() {
-    let mut packing = Packing::new(grainpipe_core::Domain::boxed([0.0; 3], [1e-3; 3], [true; 3]));
-    packing.bodies.push(grainpipe_core::Body::sphere([0.5e-3, 0.5e-3, 0.5e-3], 0.3e-3));
-    let p = VoxelizeParams { voxels_per_diameter: 20.0, ..Default::default() };
+    let mut packing = Packing::new(grainpipe_core::Domain::boxed(
+        [0.0; 3], [1e-3; 3], [true; 3],
+    ));
+    packing.bodies.push(grainpipe_core::Body::sphere(
+        [0.5e-3, 0.5e-3, 0.5e-3],
+        0.3e-3,
+    ));
+    let p = VoxelizeParams {
+        voxels_per_diameter: 20.0,
+        ..Default::default()
+    };
     let (img, cov) = voxelize(&packing, &p);
     let exact = 4.0 / 3.0 * PI * 0.3f64.powi(3);
     // A single sphere centred on a voxel centre is the worst case of the lattice-point count
     // (Gauss's sphere problem): at ~10 voxels radius the majority-vote image deviates by a few
     // percent, which averages out over the random positions of a packing (see the RSA test
     // below). The sub-voxel coverage (4^3 samples in each cut voxel) is the accurate measure.
-    assert!((img.fraction(1) - exact).abs() / exact < 0.03, "image {}", img.fraction(1));
+    assert!(
+        (img.fraction(1) - exact).abs() / exact < 0.03,
+        "image {}",
+        img.fraction(1)
+    );
     assert!((cov - exact).abs() / exact < 0.005, "coverage {cov}");
 }
 
 #[test]
 fn periodic_wrap_counts_a_sphere_across_the_corner() {
     // A sphere centred on the box corner is split into 8 pieces by the periodic boundary.
-    let mut packing = Packing::new(grainpipe_core::Domain::boxed([0.0; 3], [1e-3; 3], [true; 3]));
-    packing.bodies.push(grainpipe_core::Body::sphere([0.0, 0.0, 0.0], 0.3e-3));
-    let p = VoxelizeParams { voxels_per_diameter: 20.0, ..Default::default() };
+    let mut packing = Packing::new(grainpipe_core::Domain::boxed(
+        [0.0; 3], [1e-3; 3], [true; 3],
+    ));
+    packing
+        .bodies
+        .push(grainpipe_core::Body::sphere([0.0, 0.0, 0.0], 0.3e-3));
+    let p = VoxelizeParams {
+        voxels_per_diameter: 20.0,
+        ..Default::default()
+    };
     let (_, cov) = voxelize(&packing, &p);
     let exact = 4.0 / 3.0 * PI * 0.3f64.powi(3);
     // Same sampling tolerance as for the centred sphere: the eight pieces must add up.
-    assert!((cov - exact).abs() / exact < 0.005, "coverage {cov} vs {exact}");
+    assert!(
+        (cov - exact).abs() / exact < 0.005,
+        "coverage {cov} vs {exact}"
+    );
 }
 
 /// The acceptance test of the foundation issue: an RSA packing voxelized at 20 voxels per
 /// diameter matches the analytic sphere volume fraction within 0.5 %.
 #[test]
 fn rsa_packing_voxelized_at_20_voxels_per_diameter_within_half_percent() {
-    let p = RsaParams { size: [Q::new(400e-6); 3], volume_fraction: 0.30, ..Default::default() };
+    let p = RsaParams {
+        size: [Q::new(400e-6); 3],
+        volume_fraction: 0.30,
+        ..Default::default()
+    };
     let packing = run_rsa(&p, 42).unwrap();
     let analytic = packing.volume_fraction();
-    let (img, _) = voxelize(&packing, &VoxelizeParams { voxels_per_diameter: 20.0, ..Default::default() });
+    let (img, _) = voxelize(
+        &packing,
+        &VoxelizeParams {
+            voxels_per_diameter: 20.0,
+            ..Default::default()
+        },
+    );
     let rel = (img.fraction(1) - analytic).abs() / analytic;
-    assert!(rel < 0.005, "image {} analytic {analytic} rel {rel}", img.fraction(1));
+    assert!(
+        rel < 0.005,
+        "image {} analytic {analytic} rel {rel}",
+        img.fraction(1)
+    );
 }
 
 #[test]
 fn voxelization_does_not_depend_on_thread_count() {
-    let packing = run_rsa(&RsaParams { size: [Q::new(300e-6); 3], ..Default::default() }, 5).unwrap();
-    let p = VoxelizeParams { voxels_per_diameter: 8.0, ..Default::default() };
-    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
-    let two = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    let packing = run_rsa(
+        &RsaParams {
+            size: [Q::new(300e-6); 3],
+            ..Default::default()
+        },
+        5,
+    )
+    .unwrap();
+    let p = VoxelizeParams {
+        voxels_per_diameter: 8.0,
+        ..Default::default()
+    };
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    let two = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .unwrap();
     let a = one.install(|| voxelize(&packing, &p));
     let b = two.install(|| voxelize(&packing, &p));
     assert_eq!(a.0.labels, b.0.labels);
