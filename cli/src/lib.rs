@@ -17,6 +17,7 @@ pub fn builtin_registry() -> Registry {
     grainpipe_formats::register(&mut r);
     grainpipe_geometry::register(&mut r);
     grainpipe_bricks::register(&mut r);
+    grainpipe_sintering::register(&mut r);
     r
 }
 

@@ -1,0 +1,893 @@
+//! The `sintering.laser` stage: drives the heat balance along a laser path and collects
+//! bonds, per-particle temperatures, snapshots and the energy history.
+
+use crate::params::{param_specs, Integrator, LaserParams, PathKind, TopSurface};
+use crate::path::LaserPath;
+use crate::thermal::{AbsorberGrid, Beam, Bed, Material, Plan};
+use grainpipe_core::model::{
+    Artifact, ArtifactKind, BodyAttribute, BodyShape, ContactGraph, Packing, Series, Table,
+};
+use grainpipe_core::stage::{input, InputMetas, Inputs, Outputs, Preflight, RunContext};
+use grainpipe_core::{PortSpec, StageError, StageInfo, TypedStage};
+use std::f64::consts::PI;
+
+pub struct LaserSintering;
+
+/// Everything a run produces, for callers that want more than the artifacts.
+pub struct RunResult {
+    pub bonds: ContactGraph,
+    pub packing: Packing,
+    pub snapshots: Series,
+    pub history: Table,
+    pub steps: u64,
+    /// Candidate absorbers (particles the beam can reach).
+    pub absorbers: Vec<usize>,
+}
+
+fn check(cond: bool, key: &str, msg: impl Into<String>) -> Result<(), StageError> {
+    if cond {
+        Ok(())
+    } else {
+        Err(StageError::param(key, msg))
+    }
+}
+
+fn positive(v: f64, key: &str, what: &str) -> Result<(), StageError> {
+    check(
+        v.is_finite() && v > 0.0,
+        key,
+        format!("must be a positive {what}, got {v}"),
+    )
+}
+
+fn non_negative(v: f64, key: &str, what: &str) -> Result<(), StageError> {
+    check(
+        v.is_finite() && v >= 0.0,
+        key,
+        format!("must be a non-negative {what}, got {v}"),
+    )
+}
+
+/// Checks every parameter value (no input needed).
+pub fn validate(p: &LaserParams) -> Result<(), StageError> {
+    non_negative(p.power.si(), "power", "power in W")?;
+    positive(p.beam_radius.si(), "beam_radius", "length")?;
+    positive(p.specific_heat.si(), "specific_heat", "specific heat")?;
+    positive(p.density.si(), "density", "density")?;
+    non_negative(
+        p.convection_conductance.si(),
+        "convection_conductance",
+        "conductance",
+    )?;
+    non_negative(
+        p.contact_conductance.si(),
+        "contact_conductance",
+        "conductance",
+    )?;
+    non_negative(
+        p.bonded_conductance.si(),
+        "bonded_conductance",
+        "conductance",
+    )?;
+    positive(
+        p.ambient_temperature.si(),
+        "ambient_temperature",
+        "absolute temperature",
+    )?;
+    if let Some(t) = p.initial_temperature {
+        positive(t.si(), "initial_temperature", "absolute temperature")?;
+    }
+    positive(
+        p.sintering_temperature.si(),
+        "sintering_temperature",
+        "absolute temperature",
+    )?;
+    positive(p.scan_speed.si(), "scan_speed", "velocity")?;
+    non_negative(p.cooldown.si(), "cooldown", "time")?;
+    match p.path {
+        PathKind::Raster => {
+            positive(p.raster_length.si(), "raster_length", "length")?;
+            positive(p.hatch_spacing.si(), "hatch_spacing", "length")?;
+            if let Some(c) = p.raster_center {
+                check(
+                    c.iter().all(|v| v.si().is_finite()),
+                    "raster_center",
+                    "must be two finite lengths",
+                )?;
+            }
+        }
+        PathKind::Csv => {
+            positive(p.path_csv_unit.si(), "path_csv_unit", "length")?;
+            read_csv_path(p)?;
+        }
+    }
+    positive(p.surface_depth.si(), "surface_depth", "length")?;
+    if p.melting {
+        check(
+            p.melting_temperature.si() > p.ambient_temperature.si(),
+            "melting_temperature",
+            format!(
+                "must exceed ambient_temperature ({} K), got {} K",
+                p.ambient_temperature.si(),
+                p.melting_temperature.si()
+            ),
+        )?;
+        non_negative(p.latent_heat.si(), "latent_heat", "specific energy")?;
+        check(
+            p.integrator == Integrator::Explicit,
+            "melting",
+            "latent heat makes the implicit system nonlinear and is only available with \
+             integrator: explicit",
+        )?;
+    }
+    if let Some(dt) = p.dt {
+        positive(dt.si(), "dt", "time")?;
+    }
+    check(
+        p.dt_safety > 0.0 && p.dt_safety <= 1.0,
+        "dt_safety",
+        format!("must be in (0, 1], got {}", p.dt_safety),
+    )?;
+    check(
+        p.cg_tolerance > 0.0 && p.cg_tolerance <= 1e-3,
+        "cg_tolerance",
+        format!(
+            "must be in (0, 1e-3] (1e-12 gives round-off energy balance), got {}",
+            p.cg_tolerance
+        ),
+    )?;
+    non_negative(p.snapshot_interval.si(), "snapshot_interval", "time")?;
+    non_negative(p.history_interval.si(), "history_interval", "time")?;
+    check(p.max_steps >= 1, "max_steps", "must be at least 1")?;
+    Ok(())
+}
+
+fn read_csv_path(p: &LaserParams) -> Result<LaserPath, StageError> {
+    if p.path_csv.is_empty() {
+        return Err(StageError::param(
+            "path_csv",
+            "path: csv needs a CSV file with columns x,y[,on]",
+        ));
+    }
+    let text = std::fs::read_to_string(&p.path_csv)
+        .map_err(|e| StageError::param("path_csv", format!("cannot read {}: {e}", p.path_csv)))?;
+    LaserPath::from_csv(&text, p.path_csv_unit.si(), p.scan_speed.si())
+        .map_err(|e| StageError::param("path_csv", format!("{}: {e}", p.path_csv)))
+}
+
+/// The laser path for a packing (raster centred on the domain middle by default).
+pub fn build_path(p: &LaserParams, packing: &Packing) -> Result<LaserPath, StageError> {
+    match p.path {
+        PathKind::Raster => {
+            let d = &packing.domain;
+            let center = match p.raster_center {
+                Some(c) => [c[0].si(), c[1].si()],
+                None => [0.5 * (d.min[0] + d.max[0]), 0.5 * (d.min[1] + d.max[1])],
+            };
+            Ok(LaserPath::raster(
+                center,
+                p.raster_length.si(),
+                p.hatch_spacing.si(),
+                p.passes,
+                p.alternate,
+                p.scan_axis,
+                p.scan_speed.si(),
+            ))
+        }
+        PathKind::Csv => read_csv_path(p),
+    }
+}
+
+/// Candidate absorbers: the top surface by the chosen rule, optionally filtered by shadowing.
+pub fn select_absorbers(
+    p: &LaserParams,
+    pos: &[[f64; 3]],
+    radius: &[f64],
+    contacts: &ContactGraph,
+) -> Result<Vec<usize>, StageError> {
+    let n = pos.len();
+    let by_depth = || {
+        let top = (0..n)
+            .map(|i| pos[i][2] + radius[i])
+            .fold(f64::NEG_INFINITY, f64::max);
+        let depth = p.surface_depth.si();
+        (0..n)
+            .filter(|&i| pos[i][2] + radius[i] >= top - depth)
+            .collect::<Vec<_>>()
+    };
+    let zmax = &contacts.faces[5];
+    let mut ids: Vec<usize> = match p.top_surface {
+        TopSurface::Auto if !zmax.is_empty() => zmax.clone(),
+        TopSurface::Auto | TopSurface::Depth => by_depth(),
+        TopSurface::Face => {
+            if zmax.is_empty() {
+                return Err(StageError::input(
+                    "contacts",
+                    "top_surface: face needs the zmax face list, which is empty; use \
+                     top_surface: depth",
+                ));
+            }
+            zmax.clone()
+        }
+        TopSurface::All => (0..n).collect(),
+    };
+    if let Some(&bad) = ids.iter().find(|&&i| i >= n) {
+        return Err(StageError::input(
+            "contacts",
+            format!("zmax face lists body {bad}, but the packing has {n} bodies"),
+        ));
+    }
+    ids.sort_unstable();
+    ids.dedup();
+    if p.shadowing {
+        // Covered = some higher particle's plan-view disc contains this centre.
+        let rmax = radius.iter().cloned().fold(0.0, f64::max);
+        let all: Vec<usize> = (0..n).collect();
+        let grid = AbsorberGrid::new(all, pos, (2.0 * rmax).max(1e-12));
+        ids.retain(|&i| {
+            let mut covered = false;
+            grid.near([pos[i][0], pos[i][1]], rmax, |j| {
+                if j != i && pos[j][2] > pos[i][2] {
+                    let d2 = (pos[j][0] - pos[i][0]).powi(2) + (pos[j][1] - pos[i][1]).powi(2);
+                    if d2 < radius[j] * radius[j] {
+                        covered = true;
+                    }
+                }
+            });
+            !covered
+        });
+    }
+    Ok(ids)
+}
+
+/// Runs the simulation.
+pub fn simulate(
+    p: &LaserParams,
+    packing: &Packing,
+    contacts: &ContactGraph,
+    ctx: &RunContext,
+) -> Result<RunResult, StageError> {
+    // Run the time loop on a worker of the current rayon pool: the per-step parallel
+    // loops (several per CG iteration) then split locally instead of each waking the pool
+    // from outside, which costs more than the work on a busy machine.
+    rayon::scope(|_| simulate_in_pool(p, packing, contacts, ctx))
+}
+
+fn simulate_in_pool(
+    p: &LaserParams,
+    packing: &Packing,
+    contacts: &ContactGraph,
+    ctx: &RunContext,
+) -> Result<RunResult, StageError> {
+    validate(p)?;
+    let n = packing.bodies.len();
+    if n == 0 {
+        return Err(StageError::input("packing", "has no bodies"));
+    }
+    let mut pos = Vec::with_capacity(n);
+    let mut radius = Vec::with_capacity(n);
+    let mut volume = Vec::with_capacity(n);
+    for (i, b) in packing.bodies.iter().enumerate() {
+        let v = packing.body_volume(b);
+        if !(v.is_finite() && v > 0.0) {
+            return Err(StageError::input(
+                "packing",
+                format!("body {i} has volume {v}; a particle needs a positive volume"),
+            ));
+        }
+        pos.push(b.position);
+        volume.push(v);
+        radius.push(match b.shape {
+            BodyShape::Sphere { radius } => radius,
+            // Volume-equivalent sphere for clumps.
+            BodyShape::Clump { .. } => (3.0 * v / (4.0 * PI)).cbrt(),
+        });
+    }
+    // Conduction pairs: every contact and every pre-existing bond, each once.
+    let mut keyed: Vec<([usize; 2], bool)> = Vec::new();
+    for c in &contacts.contacts {
+        keyed.push(([c.i.min(c.j), c.i.max(c.j)], false));
+    }
+    for b in &contacts.bonds {
+        keyed.push(([b[0].min(b[1]), b[0].max(b[1])], true));
+    }
+    for (pr, _) in &keyed {
+        if pr[1] >= n || pr[0] == pr[1] {
+            return Err(StageError::input(
+                "contacts",
+                format!(
+                    "pair ({}, {}) is invalid for a packing of {n} bodies",
+                    pr[0], pr[1]
+                ),
+            ));
+        }
+    }
+    // Sort by pair, bonded last so the bonded flag wins when deduplicating.
+    keyed.sort_unstable();
+    let mut pairs: Vec<[usize; 2]> = Vec::with_capacity(keyed.len());
+    let mut bonded0: Vec<bool> = Vec::with_capacity(keyed.len());
+    for (pr, b) in keyed {
+        if pairs.last() == Some(&pr) {
+            *bonded0.last_mut().expect("same length") |= b;
+        } else {
+            pairs.push(pr);
+            bonded0.push(b);
+        }
+    }
+
+    let mat = Material {
+        specific_heat: p.specific_heat.si(),
+        density: p.density.si(),
+        convection: p.convection_conductance.si(),
+        contact: p.contact_conductance.si(),
+        bonded: p.bonded_conductance.si(),
+        ambient: p.ambient_temperature.si(),
+        sintering: p.sintering_temperature.si(),
+        melting: p
+            .melting
+            .then(|| (p.melting_temperature.si(), p.latent_heat.si())),
+    };
+    let beam = Beam {
+        power: p.power.si(),
+        radius: p.beam_radius.si(),
+        profile: p.beam_profile,
+    };
+    let t0: Vec<f64> = match (p.initial_temperature, packing.attributes.get("temperature")) {
+        (Some(t), _) => vec![t.si(); n],
+        (None, Some(a)) => {
+            if a.values.len() != n || a.values.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(StageError::input(
+                    "packing",
+                    format!(
+                        "attribute `temperature` must hold {n} positive temperatures in K to \
+                         start from; set initial_temperature to ignore it"
+                    ),
+                ));
+            }
+            a.values.clone()
+        }
+        (None, None) => vec![p.ambient_temperature.si(); n],
+    };
+    let absorbers = select_absorbers(p, &pos, &radius, contacts)?;
+    let path = build_path(p, packing)?;
+    let grid = AbsorberGrid::new(absorbers.clone(), &pos, beam.reach());
+    let mut bed = Bed::new(pos, radius, &volume, pairs, bonded0, mat, t0);
+
+    let t_end = path.duration() + p.cooldown.si();
+    let beam_dt = beam.radius / (5.0 * p.scan_speed.si());
+    let user_dt = p.dt.map(|d| d.si());
+    let explicit = p.integrator == Integrator::Explicit;
+    let mut limit = bed.stability_limit();
+    let macro_dt = |limit: f64| match (user_dt, explicit) {
+        (Some(d), _) => d,
+        (None, true) => (p.dt_safety * limit).min(beam_dt),
+        (None, false) => beam_dt,
+    };
+
+    let mut qlas = vec![0.0; n];
+    let mut touched: Vec<usize> = Vec::new();
+    let mut samples = Vec::new();
+    let mut hist = History::default();
+    let mut snapshots = Series { frames: Vec::new() };
+    let snap_every = p.snapshot_interval.si();
+    let hist_every = p.history_interval.si();
+    let mut next_snap = if snap_every > 0.0 {
+        snap_every
+    } else {
+        f64::INFINITY
+    };
+    let mut next_hist = hist_every;
+    let mut t = 0.0;
+    let mut steps: u64 = 0;
+    let mut laser_in = 0.0;
+    let mut convected = 0.0;
+    let mut last = Last::default();
+    snapshots.frames.push((0.0, frame(packing, &bed.t)));
+    hist.push(&bed, t, 0, laser_in, convected, &last, limit);
+    // Relative time tolerance for "reached" tests against accumulated float time.
+    let eps = 1e-12 * t_end.max(1e-300);
+    let mut reported = 0u64;
+
+    let use_mr = explicit && p.multirate && p.substep;
+    let mut plan: Option<Plan> = None;
+    let mut changed_particles: Vec<usize> = Vec::new();
+    while t < t_end - eps {
+        if use_mr && plan.is_none() {
+            plan = Some(bed.plan(beam_dt, p.dt_safety, user_dt));
+        }
+        let base = match &plan {
+            Some(pl) => pl.dt,
+            None => macro_dt(limit),
+        };
+        let mut h = base.min(t_end - t);
+        if next_snap - t > eps {
+            h = h.min(next_snap - t);
+        }
+        last.substeps = 0;
+        last.stiff = 0;
+        let mr = plan
+            .as_ref()
+            .filter(|pl| !pl.stiff.is_empty() && 2 * pl.stiff.len() <= n);
+        if let Some(pl) = mr {
+            let q_sum = deposit(
+                &path,
+                &grid,
+                &beam,
+                &bed.pos,
+                &bed.radius,
+                t,
+                t + h,
+                &mut qlas,
+                &mut touched,
+                &mut samples,
+            );
+            let (st, ns) = bed.explicit_step_multirate(h, &qlas, pl, p.dt_safety);
+            clear(&mut qlas, &mut touched);
+            laser_in += h * q_sum;
+            convected += st.convected;
+            t += h;
+            steps += 1;
+            last.substeps = ns;
+            last.stiff = pl.stiff.len();
+            last.dt = h;
+            last.stats = st;
+            changed_particles.clear();
+            let (_, changed) = bed.form_bonds(t, &mut changed_particles);
+            if changed {
+                limit = bed.stability_limit();
+                if let Some(pl) = plan.as_mut() {
+                    bed.update_plan(pl, &changed_particles);
+                    if 2 * pl.stiff.len() > n {
+                        // Too many to sub-cycle sequentially: choose a new global step.
+                        plan = None;
+                    }
+                }
+            }
+            if !st.max_t.is_finite() {
+                return Err(StageError::failed(format!(
+                    "temperature became non-finite at t = {t:.6e} s after {steps} steps \
+                     (dt {h:.3e} s, {} sub-cycled particles)",
+                    last.stiff
+                )));
+            }
+            if steps >= p.max_steps {
+                return Err(StageError::failed(format!(
+                    "reached max_steps = {} at t = {t:.6e} s of {t_end:.6e} s (dt {h:.3e} s)",
+                    p.max_steps
+                )));
+            }
+        } else if explicit {
+            let mut remaining = h;
+            // A step up to the limit is taken as given (automatic steps are dt_safety x
+            // limit). Above it: refuse a user dt, or split into equal stable sub-steps,
+            // re-planned when bonding changes the limit.
+            let single = h <= limit * (1.0 + 1e-12);
+            if !single && !p.substep && user_dt.is_some() {
+                return Err(StageError::param(
+                    "dt",
+                    format!(
+                        "dt = {:.6e} s exceeds the explicit stability limit {:.6e} s (min over \
+                         particles of m_i C_p / (sum_j k_ij + k_b)) at t = {t:.6e} s; use dt \
+                         <= {:.6e} s, substep: true or integrator: implicit",
+                        user_dt.unwrap_or(h),
+                        limit,
+                        limit
+                    ),
+                ));
+            }
+            let mut sub_len = 0.0;
+            while remaining > eps {
+                let sub = if single {
+                    remaining
+                } else {
+                    if sub_len == 0.0 {
+                        sub_len = remaining / (remaining / (p.dt_safety * limit)).ceil();
+                    }
+                    if remaining < 1.5 * sub_len {
+                        remaining
+                    } else {
+                        sub_len
+                    }
+                };
+                let q_sum = deposit(
+                    &path,
+                    &grid,
+                    &beam,
+                    &bed.pos,
+                    &bed.radius,
+                    t,
+                    t + sub,
+                    &mut qlas,
+                    &mut touched,
+                    &mut samples,
+                );
+                let st = bed.explicit_step(sub, &qlas);
+                clear(&mut qlas, &mut touched);
+                laser_in += sub * q_sum;
+                convected += st.convected;
+                t += sub;
+                remaining -= sub;
+                steps += 1;
+                last.substeps += 1;
+                last.dt = sub;
+                last.stats = st;
+                changed_particles.clear();
+                let (_, changed) = bed.form_bonds(t, &mut changed_particles);
+                if changed {
+                    limit = bed.stability_limit();
+                    sub_len = 0.0;
+                    if let Some(pl) = plan.as_mut() {
+                        bed.update_plan(pl, &changed_particles);
+                        if 2 * pl.stiff.len() > n {
+                            plan = None;
+                        }
+                    }
+                }
+                if !st.max_t.is_finite() {
+                    return Err(StageError::failed(format!(
+                        "temperature became non-finite at t = {t:.6e} s after {steps} steps \
+                         (dt {sub:.3e} s, stability limit {limit:.3e} s)"
+                    )));
+                }
+                if steps >= p.max_steps {
+                    return Err(StageError::failed(format!(
+                        "reached max_steps = {} at t = {t:.6e} s of {t_end:.6e} s (dt \
+                         {sub:.3e} s, stability limit {limit:.3e} s); raise max_steps or use \
+                         integrator: implicit",
+                        p.max_steps
+                    )));
+                }
+            }
+        } else {
+            let q_sum = deposit(
+                &path,
+                &grid,
+                &beam,
+                &bed.pos,
+                &bed.radius,
+                t,
+                t + h,
+                &mut qlas,
+                &mut touched,
+                &mut samples,
+            );
+            let st = bed
+                .implicit_step(h, &qlas, p.cg_tolerance)
+                .map_err(|e| StageError::failed(format!("at t = {t:.6e} s: {e}")))?;
+            clear(&mut qlas, &mut touched);
+            laser_in += h * q_sum;
+            convected += st.convected;
+            t += h;
+            steps += 1;
+            last.substeps = 1;
+            last.dt = h;
+            last.stats = st;
+            bed.form_bonds(t, &mut changed_particles);
+            changed_particles.clear();
+            if steps >= p.max_steps {
+                return Err(StageError::failed(format!(
+                    "reached max_steps = {} at t = {t:.6e} s of {t_end:.6e} s (dt {h:.3e} s)",
+                    p.max_steps
+                )));
+            }
+        }
+        let done = t >= t_end - eps;
+        if done || t >= next_hist - eps || hist_every == 0.0 {
+            hist.push(&bed, t, steps, laser_in, convected, &last, limit);
+            while next_hist <= t + eps {
+                next_hist += hist_every.max(f64::MIN_POSITIVE);
+                if hist_every == 0.0 {
+                    break;
+                }
+            }
+        }
+        if t >= next_snap - eps {
+            snapshots.frames.push((t, frame(packing, &bed.t)));
+            while next_snap <= t + eps {
+                next_snap += snap_every;
+            }
+        } else if done && snapshots.frames.last().map(|f| f.0) != Some(t) {
+            snapshots.frames.push((t, frame(packing, &bed.t)));
+        }
+        let permille = (t / t_end * 1000.0) as u64;
+        if permille > reported {
+            reported = permille;
+            ctx.progress(permille.min(1000), 1000)?;
+        }
+    }
+
+    let mut out = packing.clone();
+    let attr = |unit: &str, values: Vec<f64>| BodyAttribute {
+        unit: unit.into(),
+        values,
+    };
+    let mut bond_count = vec![0.0; n];
+    let mut bonds = Vec::new();
+    for (pr, &b) in bed.pairs.iter().zip(&bed.bonded) {
+        if b {
+            bonds.push(*pr);
+            bond_count[pr[0]] += 1.0;
+            bond_count[pr[1]] += 1.0;
+        }
+    }
+    out.attributes
+        .insert("temperature".into(), attr("K", bed.t.clone()));
+    out.attributes
+        .insert("peak_temperature".into(), attr("K", bed.peak.clone()));
+    out.attributes.insert(
+        "time_above_sintering".into(),
+        attr("s", bed.time_above.clone()),
+    );
+    out.attributes
+        .insert("bond_count".into(), attr("", bond_count));
+    let graph = ContactGraph {
+        contacts: contacts.contacts.clone(),
+        faces: contacts.faces.clone(),
+        bonds,
+        positions: bed.pos.clone(),
+    };
+    ctx.info(&format!(
+        "sintering.laser: {n} particles, {} absorbers, {steps} steps to t = {t:.4e} s, {} of \
+         {} contacts bonded, peak {:.1} K, energy residual {:.2e} J of {:.3e} J laser input",
+        absorbers.len(),
+        graph.bonds.len(),
+        bed.pairs.len(),
+        bed.peak.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+        laser_in - bed.stored() - convected,
+        laser_in
+    ));
+    Ok(RunResult {
+        bonds: graph,
+        packing: out,
+        snapshots,
+        history: hist.table(),
+        steps,
+        absorbers,
+    })
+}
+
+/// Accumulates the mean laser power per particle over [a, b] into `qlas` (indices listed
+/// in `touched`) and returns its sum [W]. The spot is sampled at most r_L/8 apart along the
+/// lit path (see [`LaserPath::samples`]), so a long implicit step deposits the whole swept
+/// track and the laser switches off exactly at the end of a scan line.
+#[allow(clippy::too_many_arguments)]
+fn deposit(
+    path: &LaserPath,
+    grid: &AbsorberGrid,
+    beam: &Beam,
+    pos: &[[f64; 3]],
+    radius: &[f64],
+    a: f64,
+    b: f64,
+    qlas: &mut [f64],
+    touched: &mut Vec<usize>,
+    samples: &mut Vec<([f64; 2], f64)>,
+) -> f64 {
+    path.samples(a, b, beam.radius / 8.0, samples);
+    let reach = beam.reach();
+    for &(spot, w) in samples.iter() {
+        grid.near(spot, reach, |i| {
+            let d2 = (pos[i][0] - spot[0]).powi(2) + (pos[i][1] - spot[1]).powi(2);
+            let q = beam.flux(radius[i], d2);
+            if q > 0.0 {
+                if qlas[i] == 0.0 {
+                    touched.push(i);
+                }
+                qlas[i] += w * q;
+            }
+        });
+    }
+    // Sum in index order so the total does not depend on the visiting order.
+    touched.sort_unstable();
+    touched.iter().map(|&i| qlas[i]).sum()
+}
+
+fn clear(qlas: &mut [f64], touched: &mut Vec<usize>) {
+    for &i in touched.iter() {
+        qlas[i] = 0.0;
+    }
+    touched.clear();
+}
+
+/// A snapshot frame: the packing with its temperature attribute.
+fn frame(packing: &Packing, t: &[f64]) -> Artifact {
+    let mut f = packing.clone();
+    f.attributes.insert(
+        "temperature".into(),
+        BodyAttribute {
+            unit: "K".into(),
+            values: t.to_vec(),
+        },
+    );
+    Artifact::Packing(f)
+}
+
+#[derive(Default)]
+struct Last {
+    dt: f64,
+    substeps: u64,
+    stiff: usize,
+    stats: crate::thermal::StepStats,
+}
+
+#[derive(Default)]
+struct History {
+    time: Vec<f64>,
+    steps: Vec<i64>,
+    dt: Vec<f64>,
+    substeps: Vec<i64>,
+    stiff: Vec<i64>,
+    limit: Vec<f64>,
+    bonds: Vec<i64>,
+    bonded_fraction: Vec<f64>,
+    bonded_particle_fraction: Vec<f64>,
+    max_t: Vec<f64>,
+    mean_t: Vec<f64>,
+    laser: Vec<f64>,
+    stored: Vec<f64>,
+    convected: Vec<f64>,
+    residual: Vec<f64>,
+    cg: Vec<i64>,
+}
+
+impl History {
+    #[allow(clippy::too_many_arguments)]
+    fn push(
+        &mut self,
+        bed: &Bed,
+        t: f64,
+        steps: u64,
+        laser: f64,
+        convected: f64,
+        last: &Last,
+        limit: f64,
+    ) {
+        let nb = bed.bond_count();
+        let stored = bed.stored();
+        let n = bed.n as f64;
+        self.time.push(t);
+        self.steps.push(steps as i64);
+        self.dt.push(last.dt);
+        self.substeps.push(last.substeps as i64);
+        self.stiff.push(last.stiff as i64);
+        self.limit.push(limit);
+        self.bonds.push(nb as i64);
+        self.bonded_fraction
+            .push(nb as f64 / (bed.pairs.len().max(1)) as f64);
+        self.bonded_particle_fraction
+            .push(bed.bonded_particles() as f64 / n);
+        let (mx, mean) = if steps == 0 {
+            (
+                bed.t.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+                bed.t.iter().sum::<f64>() / n,
+            )
+        } else {
+            (last.stats.max_t, last.stats.sum_t / n)
+        };
+        self.max_t.push(mx);
+        self.mean_t.push(mean);
+        self.laser.push(laser);
+        self.stored.push(stored);
+        self.convected.push(convected);
+        // Conduction only moves energy between particles: laser in = stored + convected.
+        self.residual.push(laser - stored - convected);
+        self.cg.push(last.stats.iterations as i64);
+    }
+
+    fn table(self) -> Table {
+        Table::new("sintering_history")
+            .with_f64("time", "s", self.time)
+            .with_i64("steps", "", self.steps)
+            .with_f64("dt", "s", self.dt)
+            .with_i64("substeps", "", self.substeps)
+            .with_i64("subcycled_particles", "", self.stiff)
+            .with_f64("stability_limit", "s", self.limit)
+            .with_i64("bonds", "", self.bonds)
+            .with_f64("bonded_fraction", "", self.bonded_fraction)
+            .with_f64(
+                "bonded_particle_fraction",
+                "",
+                self.bonded_particle_fraction,
+            )
+            .with_f64("max_temperature", "K", self.max_t)
+            .with_f64("mean_temperature", "K", self.mean_t)
+            .with_f64("laser_energy", "J", self.laser)
+            .with_f64("stored_energy", "J", self.stored)
+            .with_f64("convected_energy", "J", self.convected)
+            .with_f64("energy_residual", "J", self.residual)
+            .with_i64("cg_iterations", "", self.cg)
+    }
+}
+
+impl TypedStage for LaserSintering {
+    type Params = LaserParams;
+
+    fn info(&self) -> StageInfo {
+        StageInfo {
+            id: "sintering.laser",
+            version: "0.1.0",
+            doc: "Laser heating of a particle bed with bond formation (Method 2 paper, \
+                  section 5): per-particle heat balance m_i C_p dT_i/dt = Q r_i^2/r_L^2 (top-\
+                  surface particles within r_L of the spot) + k_b (T_R - T_i) + sum_j k_ij \
+                  (T_j - T_i) over the contact graph, integrated explicitly (paper) with \
+                  automatic stable sub-steps or implicitly (backward Euler, CG); a contact \
+                  bonds when both particles exceed T_S. Laser path: raster of a rectangle \
+                  (default: the section 5.2 five-pass square in the middle) or a CSV polyline.",
+            params: param_specs(),
+            inputs: vec![
+                PortSpec::new("packing", ArtifactKind::Packing, "particle bed (spheres or clumps)"),
+                PortSpec::new(
+                    "contacts",
+                    ArtifactKind::ContactGraph,
+                    "conduction pairs (contacts, existing bonds) and face lists (zmax = top surface)",
+                ),
+            ],
+            outputs: vec![
+                PortSpec::new("bonds", ArtifactKind::ContactGraph, "input contacts and faces with the bonds formed, and body positions"),
+                PortSpec::new("packing", ArtifactKind::Packing, "input packing with attributes temperature (final) [K], peak_temperature [K], time_above_sintering [s], bond_count"),
+                PortSpec::new("snapshots", ArtifactKind::Series, "packing frames with a temperature attribute every snapshot_interval, plus the initial and final state"),
+                PortSpec::new("history", ArtifactKind::Table, "time, bonds, bonded fractions, max/mean temperature, laser/stored/convected energy, energy residual, dt, sub-steps, stability limit"),
+            ],
+        }
+    }
+
+    fn preflight(&self, p: &LaserParams, inputs: &InputMetas) -> Result<Preflight, StageError> {
+        validate(p)?;
+        for (port, kind) in [
+            ("packing", ArtifactKind::Packing),
+            ("contacts", ArtifactKind::ContactGraph),
+        ] {
+            match inputs.get(port) {
+                None => return Err(StageError::input(port, "not connected")),
+                Some(m) if m.kind != kind => {
+                    return Err(StageError::input(
+                        port,
+                        format!("expects a {kind}, got a {}", m.kind),
+                    ))
+                }
+                _ => {}
+            }
+        }
+        let n = inputs["packing"].count_estimate.max(1);
+        let duration = match p.path {
+            PathKind::Raster => {
+                p.passes as f64 * p.raster_length.si() / p.scan_speed.si() + p.cooldown.si()
+            }
+            PathKind::Csv => read_csv_path(p)?.duration() + p.cooldown.si(),
+        };
+        let frames = if p.snapshot_interval.si() > 0.0 {
+            (duration / p.snapshot_interval.si()).ceil() as u64 + 2
+        } else {
+            2
+        };
+        // Per particle: ~16 f64 of state and scratch, ~8 contacts x 24 bytes, and one
+        // packing clone (~100 bytes per body) per snapshot frame.
+        let memory = n * (16 * 8 + 8 * 24) + frames * n * 112;
+        let mut pf = Preflight::from_info(&self.info(), memory);
+        for (name, meta) in pf.outputs.iter_mut() {
+            meta.count_estimate = match name.as_str() {
+                "packing" | "bonds" => n,
+                "snapshots" => frames,
+                _ => 0,
+            };
+        }
+        Ok(pf)
+    }
+
+    fn run(
+        &self,
+        p: &LaserParams,
+        inputs: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let packing = input(inputs, "packing", Artifact::as_packing)?;
+        let contacts = input(inputs, "contacts", Artifact::as_contact_graph)?;
+        let r = simulate(p, packing, contacts, ctx)?;
+        let mut out = Outputs::new();
+        out.insert("bonds".into(), Artifact::ContactGraph(r.bonds));
+        out.insert("packing".into(), Artifact::Packing(r.packing));
+        out.insert("snapshots".into(), Artifact::Series(r.snapshots));
+        out.insert("history".into(), Artifact::Table(r.history));
+        Ok(out)
+    }
+}

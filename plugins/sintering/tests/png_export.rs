@@ -1,0 +1,49 @@
+//! The png exporter draws a top view of a contact graph: checked pixel by pixel.
+
+use grainpipe_core::model::{Artifact, ArtifactKind, Contact, ContactGraph, Provenance};
+use grainpipe_core::Exporter;
+use grainpipe_sintering::BondGraphPng;
+
+#[test]
+fn top_view_png_shows_bonds_and_particles() {
+    // Four particles on a 100 um square; one bond along the bottom edge.
+    let pos = vec![
+        [0.0, 0.0, 0.0],
+        [100e-6, 0.0, 0.0],
+        [0.0, 100e-6, 5e-6],
+        [100e-6, 100e-6, 0.0],
+    ];
+    let c = |i, j| Contact { i, j, gap: 0.0 };
+    let g = ContactGraph {
+        contacts: vec![c(0, 1), c(0, 2), c(1, 3), c(2, 3)],
+        bonds: vec![[0, 1]],
+        positions: pos,
+        ..Default::default()
+    };
+    let ex = BondGraphPng;
+    assert!(ex.accepts(ArtifactKind::ContactGraph) && !ex.accepts(ArtifactKind::Packing));
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bonds.png");
+    ex.write(&Artifact::ContactGraph(g), &path, &Provenance::default())
+        .unwrap();
+    let img = image::open(&path).unwrap().to_rgb8();
+    // Square extent: 1600 px with 20 px margins -> 1560 px for 100 um.
+    assert_eq!(img.dimensions(), (1600, 1600));
+    let px = |x: u32, y: u32| img.get_pixel(x, y).0;
+    // Bond midpoint (50 um, 0) -> pixel (800, 1580): black line.
+    assert_eq!(px(800, 1580), [0, 0, 0]);
+    // No bond along the top edge, between the circles: white background.
+    assert_eq!(px(800, 20), [255, 255, 255]);
+    // Bonded particle 0 at (20, 1580) is filled orange a few pixels off the line.
+    assert_eq!(px(20, 1560), [230, 120, 30]);
+    // Unbonded particle 3 at (1580, 20): grey outline of radius 780 px (half the
+    // 100 um contact distance), white inside.
+    assert_eq!(px(1580, 300), [255, 255, 255]);
+    // The write was atomic: only the final file is left in the directory.
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    // Anything but a contact graph is refused.
+    let t = Artifact::Table(Default::default());
+    assert!(ex
+        .write(&t, &dir.path().join("x.png"), &Provenance::default())
+        .is_err());
+}
