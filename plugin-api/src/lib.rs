@@ -59,6 +59,25 @@ pub mod dtype {
     }
 }
 
+/// Element types that cross the ABI, with their dtype code.
+pub trait Element: Copy + 'static + private::Sealed {
+    const DTYPE: u32;
+}
+
+mod private {
+    pub trait Sealed {}
+}
+
+macro_rules! element {
+    ($($t:ty => $d:expr),*) => {$(
+        impl private::Sealed for $t {}
+        impl Element for $t {
+            const DTYPE: u32 = $d;
+        }
+    )*};
+}
+element!(u8 => dtype::U8, u32 => dtype::U32, i64 => dtype::I64, f32 => dtype::F32, f64 => dtype::F64);
+
 /// A borrowed UTF-8 string (not NUL-terminated).
 #[repr(C)]
 #[derive(Clone, Copy, Debug)]
@@ -244,8 +263,9 @@ impl<'a> ArrayView<'a> {
         }
         Some(shape.iter().product())
     }
-    fn typed<T>(&self, dt: u32) -> Option<&'a [T]> {
-        if self.raw.dtype != dt {
+    /// The elements as a slice, if the dtype is `T` and the array is contiguous.
+    pub fn as_slice<T: Element>(&self) -> Option<&'a [T]> {
+        if self.raw.dtype != T::DTYPE {
             return None;
         }
         let n = self.contiguous_len(std::mem::size_of::<T>())?;
@@ -255,21 +275,6 @@ impl<'a> ArrayView<'a> {
         // SAFETY: dtype, contiguity and length checked; the host keeps the data alive and
         // aligned for T for the duration of the call.
         Some(unsafe { std::slice::from_raw_parts(self.raw.data as *const T, n) })
-    }
-    pub fn as_u8(&self) -> Option<&'a [u8]> {
-        self.typed(dtype::U8)
-    }
-    pub fn as_u32(&self) -> Option<&'a [u32]> {
-        self.typed(dtype::U32)
-    }
-    pub fn as_i64(&self) -> Option<&'a [i64]> {
-        self.typed(dtype::I64)
-    }
-    pub fn as_f32(&self) -> Option<&'a [f32]> {
-        self.typed(dtype::F32)
-    }
-    pub fn as_f64(&self) -> Option<&'a [f64]> {
-        self.typed(dtype::F64)
     }
 }
 
@@ -330,11 +335,12 @@ impl Outputs<'_> {
         }
     }
 
-    fn alloc<T>(
+    /// Allocates output array `name` of `port` (zero-filled, C-contiguous, owned by the
+    /// host) and returns it as a slice of exactly `shape.iter().product()` elements.
+    pub fn alloc<T: Element>(
         &mut self,
         port: &str,
         name: &str,
-        dt: u32,
         shape: &[usize],
     ) -> Result<&mut [T], Failure> {
         let n = shape
@@ -345,7 +351,7 @@ impl Outputs<'_> {
             self.host.ctx,
             GpStr::new(port),
             GpStr::new(name),
-            dt,
+            T::DTYPE,
             shape.len() as u32,
             shape.as_ptr(),
         );
@@ -360,46 +366,6 @@ impl Outputs<'_> {
         // SAFETY: the host returned a zeroed, aligned buffer of exactly n elements of T that
         // lives until the call returns and is not aliased.
         Ok(unsafe { std::slice::from_raw_parts_mut(p as *mut T, n) })
-    }
-    pub fn alloc_u8(
-        &mut self,
-        port: &str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<&mut [u8], Failure> {
-        self.alloc(port, name, dtype::U8, shape)
-    }
-    pub fn alloc_u32(
-        &mut self,
-        port: &str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<&mut [u32], Failure> {
-        self.alloc(port, name, dtype::U32, shape)
-    }
-    pub fn alloc_i64(
-        &mut self,
-        port: &str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<&mut [i64], Failure> {
-        self.alloc(port, name, dtype::I64, shape)
-    }
-    pub fn alloc_f32(
-        &mut self,
-        port: &str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<&mut [f32], Failure> {
-        self.alloc(port, name, dtype::F32, shape)
-    }
-    pub fn alloc_f64(
-        &mut self,
-        port: &str,
-        name: &str,
-        shape: &[usize],
-    ) -> Result<&mut [f64], Failure> {
-        self.alloc(port, name, dtype::F64, shape)
     }
 }
 

@@ -151,7 +151,7 @@ impl PluginStage for PorosityProfile {
         } = grid(image)?;
         let labels = image
             .array("labels")
-            .and_then(|a| a.as_u8())
+            .and_then(|a| a.as_slice::<u8>())
             .ok_or(Failure::Input {
                 port: "image".into(),
                 message: "no u8 `labels` array".into(),
@@ -180,11 +180,11 @@ impl PluginStage for PorosityProfile {
             "Table",
             r#"{"name":"porosity_profile","columns":[{"name":"position","unit":"m","dtype":"f64"},{"name":"porosity","unit":"1","dtype":"f64"}]}"#,
         )?;
-        let position = out.alloc_f64("profile", "position", &[n])?;
+        let position = out.alloc::<f64>("profile", "position", &[n])?;
         for (i, x) in position.iter_mut().enumerate() {
             *x = origin[p.axis] + (i as f64 + 0.5) * spacing[p.axis];
         }
-        let porosity = out.alloc_f64("profile", "porosity", &[n])?;
+        let porosity = out.alloc::<f64>("profile", "porosity", &[n])?;
         for (v, c) in porosity.iter_mut().zip(&pores) {
             *v = *c as f64 / per_slice;
         }

@@ -59,7 +59,7 @@ impl PluginStage for Overflows {
             "Table",
             r#"{"name":"t","columns":[{"name":"x","unit":"","dtype":"f64"}]}"#,
         )?;
-        let x = out.alloc_f64("table", "x", &[4])?;
+        let x = out.alloc::<f64>("table", "x", &[4])?;
         let past_the_end = x.len();
         x[past_the_end] = 1.0; // bounds-checked: panics instead of corrupting host memory
         Ok(())
