@@ -359,6 +359,42 @@ fn preflight_for(info: &StageInfo, c: &Common, min_side: f64) -> Result<Prefligh
 /// The domain `bricks.curved` fills: sides, filled faces, signed distance, cut-outs.
 type CurvedDomain = ([f64; 3], [bool; 6], Sdf, Vec<ExcludedSolid>);
 
+/// The run of Method 1 and Method 2: fill one box-shaped unit brick, then tile it.
+fn run_box(
+    id: &'static str,
+    c: &Common,
+    mode: Mode,
+    factor: f64,
+    tile: fn(&Filler, [usize; 3]) -> Assembly,
+    ctx: &RunContext,
+) -> Result<Outputs, StageError> {
+    let (_, sides) = c.check(factor)?;
+    let sdf = Sdf::Box {
+        min: [0.0; 3],
+        max: sides,
+    };
+    let mut f = Filler::new(
+        mode,
+        sides,
+        sdf,
+        c.radius,
+        c.settings(id, [true; 6]),
+        ctx.rng(),
+    );
+    f.fill(ctx)?;
+    let asm = tile(&f, c.brick_numbers);
+    Ok(finish(
+        &f,
+        asm,
+        mode,
+        c.contact_parameter,
+        c.body_goal,
+        c.face_goal,
+        c.radius,
+        Vec::new(),
+    ))
+}
+
 /// Everything computed after the unit brick is filled.
 #[allow(clippy::too_many_arguments)]
 fn finish(
@@ -473,32 +509,14 @@ impl TypedStage for Method1 {
         preflight_for(&self.info(), &p.common(), 4.0)
     }
     fn run(&self, p: &Method1Params, _: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
-        let c = p.common();
-        let (_, sides) = c.check(4.0)?;
-        let sdf = Sdf::Box {
-            min: [0.0; 3],
-            max: sides,
-        };
-        let mut f = Filler::new(
+        run_box(
+            "bricks.method1",
+            &p.common(),
             Mode::Closed,
-            sides,
-            sdf,
-            &p.radius,
-            c.settings("bricks.method1", [true; 6]),
-            ctx.rng(),
-        );
-        f.fill(ctx)?;
-        let asm = assemble::reflect(&f, p.brick_numbers);
-        Ok(finish(
-            &f,
-            asm,
-            Mode::Closed,
-            p.contact_parameter,
-            p.body_goal,
-            p.face_goal,
-            &p.radius,
-            Vec::new(),
-        ))
+            4.0,
+            assemble::reflect,
+            ctx,
+        )
     }
 }
 
@@ -527,32 +545,14 @@ impl TypedStage for Method2 {
         preflight_for(&self.info(), &p.common(), 2.0)
     }
     fn run(&self, p: &Method2Params, _: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
-        let c = p.common();
-        let (_, sides) = c.check(2.0)?;
-        let sdf = Sdf::Box {
-            min: [0.0; 3],
-            max: sides,
-        };
-        let mut f = Filler::new(
+        run_box(
+            "bricks.method2",
+            &p.common(),
             Mode::Centered,
-            sides,
-            sdf,
-            &p.radius,
-            c.settings("bricks.method2", [true; 6]),
-            ctx.rng(),
-        );
-        f.fill(ctx)?;
-        let asm = assemble::translate(&f, p.brick_numbers);
-        Ok(finish(
-            &f,
-            asm,
-            Mode::Centered,
-            p.contact_parameter,
-            p.body_goal,
-            p.face_goal,
-            &p.radius,
-            Vec::new(),
-        ))
+            2.0,
+            assemble::translate,
+            ctx,
+        )
     }
 }
 
