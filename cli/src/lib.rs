@@ -18,6 +18,7 @@ pub fn builtin_registry() -> Registry {
     grainpipe_geometry::register(&mut r);
     grainpipe_bricks::register(&mut r);
     grainpipe_sintering::register(&mut r);
+    grainpipe_clumps::register(&mut r);
     r
 }
 

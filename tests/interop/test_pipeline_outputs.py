@@ -27,7 +27,7 @@ BOX = 200e-6  # metres, the --set below
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("spheres")
-    pipe = os.environ.get("PIPE", str(ROOT / "target/release/pipe"))
+    pipe = str((ROOT / os.environ.get("PIPE", "target/release/pipe")).resolve())
     subprocess.run(
         [pipe, "run", str(ROOT / "pipelines/spheres.yaml"), "--quiet", "--no-cache",
          "--set", "pack.size=[200 um, 200 um, 200 um]"],

@@ -1,0 +1,519 @@
+//! `clumps.garcia` (grain masks -> ClumpLibrary) and `clumps.library` (subsample, rescale,
+//! export), plus the `clump_json` exporter.
+
+use crate::garcia::{
+    clump_metrics, garcia, is_connected, ClumpMetrics, GarciaOptions, GarciaResult,
+};
+use crate::grains::{series_to_grains, GrainMask};
+use grainpipe_core::fsutil::atomic_write;
+use grainpipe_core::*;
+use nalgebra::{Matrix3, SymmetricEigen};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// Principal moments (ascending) and axes (rows) of a symmetric tensor.
+pub fn principal(inertia: [[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
+    let m = Matrix3::from_fn(|i, j| inertia[i][j]);
+    let e = SymmetricEigen::new(m);
+    let mut idx = [0usize, 1, 2];
+    idx.sort_by(|&a, &b| e.eigenvalues[a].total_cmp(&e.eigenvalues[b]));
+    let vals = idx.map(|k| e.eigenvalues[k]);
+    let axes = idx.map(|k| {
+        let c = e.eigenvectors.column(k);
+        [c[0], c[1], c[2]]
+    });
+    (vals, axes)
+}
+
+/// One grain's clump and how well it matches the mask.
+#[derive(Clone, Debug)]
+pub struct GrainClump {
+    pub clump: Clump,
+    pub result: GarciaResult,
+    pub metrics: ClumpMetrics,
+    pub connected: bool,
+    /// Voxel edge of the grain mask [m].
+    pub voxel: f64,
+}
+
+/// Algorithm 1 on one grain, then the clump in physical units (spheres relative to the
+/// clump centroid, axes of the grid frame).
+pub fn clump_grain(g: &GrainMask, opts: &GarciaOptions, sub: usize) -> Result<GrainClump, String> {
+    let res = garcia(&g.mask, g.dims, opts).map_err(|f| {
+        format!(
+            "{} ({} voxels): {} [{} spheres, coverage {:.4}]",
+            g.source,
+            f.partial.total,
+            f.message,
+            f.partial.spheres.len(),
+            f.partial.coverage()
+        )
+    })?;
+    let metrics = clump_metrics(&res.spheres, &g.mask, g.dims, sub);
+    let h = g.voxel;
+    // Voxel coordinate v sits at origin + (v + 1/2) h.
+    let c = metrics.clump.centroid;
+    let spheres: Vec<ClumpSphere> = res
+        .spheres
+        .iter()
+        .map(|s| ClumpSphere {
+            offset: [0, 1, 2].map(|a| (s.center[a] as f64 - c[a]) * h),
+            radius: s.radius() * h,
+        })
+        .collect();
+    let bounding_radius = spheres
+        .iter()
+        .map(|s| (s.offset.iter().map(|v| v * v).sum::<f64>()).sqrt() + s.radius)
+        .fold(0.0, f64::max);
+    let inertia = metrics.clump.inertia.map(|row| row.map(|v| v * h.powi(5)));
+    let (principal_inertia, principal_axes) = principal(inertia);
+    let connected = is_connected(&res.spheres);
+    Ok(GrainClump {
+        clump: Clump {
+            spheres,
+            volume: metrics.clump.volume * h.powi(3),
+            bounding_radius,
+            principal_inertia,
+            principal_axes,
+            source: g.source.clone(),
+        },
+        result: res,
+        metrics,
+        connected,
+        voxel: h,
+    })
+}
+
+// ---------------------------------------------------------------------------------------
+// clumps.garcia
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GarciaParams {
+    pub alpha: f64,
+    pub medial_surface: bool,
+    pub lazy_heap: bool,
+    pub max_spheres: usize,
+    pub quadrature: usize,
+}
+
+impl Default for GarciaParams {
+    fn default() -> Self {
+        GarciaParams {
+            alpha: 0.9, // paper, section 2.1 (as Schneider et al. 2018)
+            medial_surface: true,
+            lazy_heap: true,
+            max_spheres: 5000,
+            quadrature: 2,
+        }
+    }
+}
+
+pub struct Garcia;
+
+impl TypedStage for Garcia {
+    type Params = GarciaParams;
+    fn info(&self) -> StageInfo {
+        StageInfo {
+            id: "clumps.garcia",
+            version: "1.0.0",
+            doc: "Each grain mask becomes a connected cluster of overlapping spheres covering \
+                  a fraction alpha of its voxels: Garcia's greedy set cover (Donval et al. \
+                  2025, Algorithm 1) with an exact Euclidean distance transform, candidate \
+                  centres on the medial surface and a lazy max-heap of potential coverage.",
+            params: vec![
+                ParamSpec { name: "alpha", ty: "number in (0, 1]", unit: "", doc: "target covered fraction of each grain's voxels (paper: 0.9)" },
+                ParamSpec { name: "medial_surface", ty: "bool", unit: "", doc: "restrict candidate centres to the medial surface (centres of maximal balls)" },
+                ParamSpec { name: "lazy_heap", ty: "bool", unit: "", doc: "lazy max-heap of potential coverage; false re-evaluates every candidate each step (same spheres, slower)" },
+                ParamSpec { name: "max_spheres", ty: "integer", unit: "", doc: "fail a grain that needs more spheres" },
+                ParamSpec { name: "quadrature", ty: "integer >= 1", unit: "", doc: "sub-samples per voxel edge for the clump's volume and inertia" },
+            ],
+            inputs: vec![PortSpec::new("grains", ArtifactKind::Series, "grain masks (a grains.* output)")],
+            outputs: vec![
+                PortSpec::new("library", ArtifactKind::ClumpLibrary, "one clump per grain, in grain order"),
+                PortSpec::new("report", ArtifactKind::Table, "per grain: spheres, candidates, coverage, volume and inertia error vs the mask, connectivity"),
+            ],
+        }
+    }
+    fn preflight(&self, p: &Self::Params, inputs: &InputMetas) -> Result<Preflight, StageError> {
+        if !(p.alpha > 0.0 && p.alpha <= 1.0) {
+            return Err(StageError::param(
+                "alpha",
+                format!("must be in (0, 1], got {}", p.alpha),
+            ));
+        }
+        if p.max_spheres == 0 {
+            return Err(StageError::param("max_spheres", "must be at least 1"));
+        }
+        if !(1..=8).contains(&p.quadrature) {
+            return Err(StageError::param("quadrature", "must be in 1..=8"));
+        }
+        let n = inputs.get("grains").map(|m| m.count_estimate).unwrap_or(0);
+        let mut pf = Preflight::from_info(&self.info(), 64 << 20);
+        if let Some(m) = pf.outputs.get_mut("library") {
+            m.count_estimate = n;
+        }
+        Ok(pf)
+    }
+    fn run(
+        &self,
+        p: &Self::Params,
+        inputs: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let s = input(inputs, "grains", Artifact::as_series)?;
+        let grains = series_to_grains(s).map_err(|e| StageError::input("grains", e))?;
+        let opts = GarciaOptions {
+            alpha: p.alpha,
+            medial: p.medial_surface,
+            lazy: p.lazy_heap,
+            max_spheres: p.max_spheres,
+        };
+        let done = std::sync::atomic::AtomicU64::new(0);
+        let n = grains.len() as u64;
+        let out: Vec<GrainClump> = grains
+            .par_iter()
+            .enumerate()
+            .map(|(k, g)| {
+                let r = clump_grain(g, &opts, p.quadrature)
+                    .map_err(|e| StageError::failed(format!("grain {k}: {e}")))?;
+                let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                ctx.progress(d, n)?;
+                Ok(r)
+            })
+            .collect::<Result<_, StageError>>()?;
+        let report = report_table(&out);
+        let mut o = Outputs::new();
+        o.insert(
+            "library".into(),
+            Artifact::ClumpLibrary(ClumpLibrary {
+                clumps: out.into_iter().map(|g| g.clump).collect(),
+                source: format!("clumps.garcia alpha = {}", p.alpha),
+            }),
+        );
+        o.insert("report".into(), Artifact::Table(report));
+        Ok(o)
+    }
+}
+
+pub fn report_table(out: &[GrainClump]) -> Table {
+    let f = |g: &dyn Fn(&GrainClump) -> f64| out.iter().map(g).collect::<Vec<f64>>();
+    Table::new("clump_report")
+        .with_i64("grain", "", (0..out.len() as i64).collect())
+        .with_str(
+            "source",
+            out.iter().map(|g| g.clump.source.clone()).collect(),
+        )
+        .with_i64(
+            "spheres",
+            "",
+            out.iter().map(|g| g.clump.spheres.len() as i64).collect(),
+        )
+        .with_i64(
+            "candidates",
+            "",
+            out.iter().map(|g| g.result.candidates as i64).collect(),
+        )
+        .with_f64("coverage", "", f(&|g| g.result.coverage()))
+        .with_f64(
+            "volume_mask",
+            "m^3",
+            f(&|g| g.metrics.mask.volume * g.voxel.powi(3)),
+        )
+        .with_f64("volume_clump", "m^3", f(&|g| g.clump.volume))
+        .with_f64("volume_error", "", f(&|g| g.metrics.volume_error()))
+        .with_f64("inertia_error", "", f(&|g| g.metrics.inertia_error()))
+        .with_f64(
+            "symmetric_difference",
+            "",
+            f(&|g| g.metrics.symmetric_difference / g.metrics.mask.volume),
+        )
+        .with_f64(
+            "bounding_diameter",
+            "m",
+            f(&|g| 2.0 * g.clump.bounding_radius),
+        )
+        .with_i64(
+            "connected",
+            "",
+            out.iter().map(|g| g.connected as i64).collect(),
+        )
+}
+
+// ---------------------------------------------------------------------------------------
+// clumps.library
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LibraryParams {
+    pub count: usize,
+    pub sampling: String,
+    pub scale: f64,
+}
+
+impl Default for LibraryParams {
+    fn default() -> Self {
+        LibraryParams {
+            // Paper, section 2.1: a reduced library of 200 particles chosen by Sobol sampling.
+            count: 200,
+            sampling: "sobol".into(),
+            scale: 1.0,
+        }
+    }
+}
+
+/// Indices of `count` clumps drawn by bounding-sphere diameter `d`: scrambled Sobol points
+/// (Owen scrambling, `sobol_burley`) or i.i.d. uniforms mapped through the sorted list
+/// (paper, Remark 2 and section 3.1: "the grains are sorted based on the diameter of their
+/// bounding sphere. Then, the sampling is performed ... using a scrambled Sobol sequence").
+pub fn subsample(d: &[f64], count: usize, sobol: bool, seed: u64) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..d.len()).collect();
+    order.sort_by(|&a, &b| d[a].total_cmp(&d[b]).then(a.cmp(&b)));
+    let m = d.len();
+    let mut rng = <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed);
+    (0..count)
+        .map(|k| {
+            let u = if sobol {
+                sobol_burley::sample(k as u32, 0, (seed ^ (seed >> 32)) as u32) as f64
+            } else {
+                rand::RngExt::random::<f64>(&mut rng)
+            };
+            order[((u * m as f64) as usize).min(m - 1)]
+        })
+        .collect()
+}
+
+pub fn scale_clump(c: &Clump, s: f64) -> Clump {
+    Clump {
+        spheres: c
+            .spheres
+            .iter()
+            .map(|x| ClumpSphere {
+                offset: x.offset.map(|v| v * s),
+                radius: x.radius * s,
+            })
+            .collect(),
+        volume: c.volume * s.powi(3),
+        bounding_radius: c.bounding_radius * s,
+        principal_inertia: c.principal_inertia.map(|v| v * s.powi(5)),
+        principal_axes: c.principal_axes,
+        source: c.source.clone(),
+    }
+}
+
+pub fn library_table(l: &ClumpLibrary) -> Table {
+    let f = |g: &dyn Fn(&Clump) -> f64| l.clumps.iter().map(g).collect::<Vec<f64>>();
+    Table::new("clump_library")
+        .with_i64("clump", "", (0..l.clumps.len() as i64).collect())
+        .with_str(
+            "source",
+            l.clumps.iter().map(|c| c.source.clone()).collect(),
+        )
+        .with_i64(
+            "spheres",
+            "",
+            l.clumps.iter().map(|c| c.spheres.len() as i64).collect(),
+        )
+        .with_f64("volume", "m^3", f(&|c| c.volume))
+        .with_f64(
+            "d_eq",
+            "m",
+            f(&|c| (6.0 * c.volume / std::f64::consts::PI).cbrt()),
+        )
+        .with_f64("bounding_radius", "m", f(&|c| c.bounding_radius))
+        .with_f64("inertia_1", "m^5", f(&|c| c.principal_inertia[0]))
+        .with_f64("inertia_2", "m^5", f(&|c| c.principal_inertia[1]))
+        .with_f64("inertia_3", "m^5", f(&|c| c.principal_inertia[2]))
+}
+
+/// The clumps laid out on a square grid in the x-y plane, for viewing (.vtp).
+pub fn gallery(l: &ClumpLibrary) -> Packing {
+    let n = l.clumps.len().max(1);
+    let side = (n as f64).sqrt().ceil() as usize;
+    let pitch = 2.2
+        * l.clumps
+            .iter()
+            .map(|c| c.bounding_radius)
+            .fold(0.0, f64::max)
+            .max(1e-12);
+    let mut p = Packing::new(Domain::boxed(
+        [0.0; 3],
+        [
+            side as f64 * pitch,
+            (n.div_ceil(side)) as f64 * pitch,
+            pitch,
+        ],
+        [false; 3],
+    ));
+    for k in 0..l.clumps.len() {
+        let (i, j) = (k % side, k / side);
+        p.bodies.push(Body {
+            shape: BodyShape::Clump { index: k },
+            position: [
+                (i as f64 + 0.5) * pitch,
+                (j as f64 + 0.5) * pitch,
+                0.5 * pitch,
+            ],
+            orientation: [1.0, 0.0, 0.0, 0.0],
+            layer: 0,
+            frozen: false,
+        });
+    }
+    p.library = Some(l.clone());
+    p
+}
+
+pub struct Library;
+
+impl TypedStage for Library {
+    type Params = LibraryParams;
+    fn info(&self) -> StageInfo {
+        StageInfo {
+            id: "clumps.library",
+            version: "1.0.0",
+            doc: "A reduced clump library: N clumps drawn by scrambled Sobol sampling of the \
+                  bounding-sphere diameter (paper, Remark 2), optionally rescaled (the paper \
+                  rescales GS14 clumps by 19/14 for GS19 sand); per-clump table and a gallery \
+                  packing for .vtp viewing.",
+            params: vec![
+                ParamSpec {
+                    name: "count",
+                    ty: "integer",
+                    unit: "",
+                    doc: "clumps to draw (paper: 200); 0 = keep all",
+                },
+                ParamSpec {
+                    name: "sampling",
+                    ty: "one of: sobol, random, all",
+                    unit: "",
+                    doc: "scrambled Sobol (paper), i.i.d. uniform, or all clumps in order",
+                },
+                ParamSpec {
+                    name: "scale",
+                    ty: "number > 0",
+                    unit: "",
+                    doc: "length factor applied to every clump (paper: 19/14 = 1.357 for GS19)",
+                },
+            ],
+            inputs: vec![PortSpec::new(
+                "library",
+                ArtifactKind::ClumpLibrary,
+                "the full library (clumps.garcia)",
+            )],
+            outputs: vec![
+                PortSpec::new(
+                    "library",
+                    ArtifactKind::ClumpLibrary,
+                    "the reduced, rescaled library (.h5, or .json with format: clump_json)",
+                ),
+                PortSpec::new(
+                    "table",
+                    ArtifactKind::Table,
+                    "per clump: spheres, volume, d_eq, bounding radius, principal inertia",
+                ),
+                PortSpec::new(
+                    "gallery",
+                    ArtifactKind::Packing,
+                    "the clumps on a square grid (export as .vtp)",
+                ),
+            ],
+        }
+    }
+    fn preflight(&self, p: &Self::Params, _: &InputMetas) -> Result<Preflight, StageError> {
+        if !["sobol", "random", "all"].contains(&p.sampling.as_str()) {
+            return Err(StageError::param(
+                "sampling",
+                format!("`{}`: use sobol, random or all", p.sampling),
+            ));
+        }
+        if !(p.scale.is_finite() && p.scale > 0.0) {
+            return Err(StageError::param(
+                "scale",
+                format!("must be positive, got {}", p.scale),
+            ));
+        }
+        if p.count > u32::MAX as usize {
+            return Err(StageError::param("count", "too large"));
+        }
+        Ok(Preflight::from_info(&self.info(), 16 << 20))
+    }
+    fn run(
+        &self,
+        p: &Self::Params,
+        inputs: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let full = input(inputs, "library", Artifact::as_clump_library)?;
+        if full.clumps.is_empty() {
+            return Err(StageError::input("library", "the library is empty"));
+        }
+        let picked: Vec<usize> = if p.sampling == "all" || p.count == 0 {
+            (0..full.clumps.len()).collect()
+        } else {
+            let d: Vec<f64> = full
+                .clumps
+                .iter()
+                .map(|c| 2.0 * c.bounding_radius)
+                .collect();
+            subsample(&d, p.count, p.sampling == "sobol", ctx.seed)
+        };
+        let lib = ClumpLibrary {
+            clumps: picked
+                .iter()
+                .map(|&i| scale_clump(&full.clumps[i], p.scale))
+                .collect(),
+            source: format!(
+                "{} | clumps.library {} x{} scale {}",
+                full.source,
+                p.sampling,
+                picked.len(),
+                p.scale
+            ),
+        };
+        let mut o = Outputs::new();
+        o.insert("table".into(), Artifact::Table(library_table(&lib)));
+        o.insert("gallery".into(), Artifact::Packing(gallery(&lib)));
+        o.insert("library".into(), Artifact::ClumpLibrary(lib));
+        Ok(o)
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Exporter
+
+/// JSON of a ClumpLibrary: `{ "provenance": {...}, "source": ..., "clumps": [{ spheres:
+/// [{offset, radius}], volume, bounding_radius, principal_inertia, principal_axes, source }] }`,
+/// SI units. Selected with `format: clump_json` (the formats crate's `json` takes tables).
+pub struct ClumpJsonExporter;
+
+impl Exporter for ClumpJsonExporter {
+    fn name(&self) -> &'static str {
+        "clump_json"
+    }
+    fn extensions(&self) -> &'static [&'static str] {
+        &[]
+    }
+    fn accepts(&self, kind: ArtifactKind) -> bool {
+        kind == ArtifactKind::ClumpLibrary
+    }
+    fn doc(&self) -> &'static str {
+        "JSON clump library: per clump its spheres (offset from the centroid, radius), volume, \
+         bounding radius, principal inertia per unit density and axes [SI]"
+    }
+    fn write(&self, a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+        let Artifact::ClumpLibrary(l) = a else {
+            return Err(format!(
+                "clump_json takes a ClumpLibrary, not a {}",
+                a.kind()
+            ));
+        };
+        let v = serde_json::json!({
+            "provenance": prov.entries,
+            "source": l.source,
+            "clumps": l.clumps,
+        });
+        let text = serde_json::to_string_pretty(&v).map_err(|e| e.to_string())?;
+        atomic_write(path, |tmp| std::fs::write(tmp, text.as_bytes()))
+    }
+}
