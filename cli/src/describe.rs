@@ -5,11 +5,30 @@ use grainpipe_core::registry::Registered;
 use grainpipe_core::Registry;
 use std::fmt::Write;
 
-/// First sentence of a doc paragraph.
+/// First sentence of a doc paragraph: up to the first ". " followed by a capital letter that
+/// does not end an abbreviation ("et al.", "e.g.", "eq.").
 fn summary(doc: &str) -> &str {
-    match doc.find(". ") {
-        Some(i) => &doc[..=i],
-        None => doc.trim_end(),
+    const ABBREVIATIONS: [&str; 6] = ["al", "e.g", "i.e", "eq", "cf", "Fig"];
+    for (i, _) in doc.match_indices(". ") {
+        let next_is_capital = doc[i + 2..].chars().next().is_some_and(char::is_uppercase);
+        let word = doc[..i].rsplit(' ').next().unwrap_or("");
+        if next_is_capital && !ABBREVIATIONS.contains(&word) {
+            return &doc[..=i];
+        }
+    }
+    doc.trim_end()
+}
+
+/// Extensions as `.a .b`, or a note that only `format:` selects the exporter.
+fn extensions(e: &dyn grainpipe_core::Exporter) -> String {
+    if e.extensions().is_empty() {
+        "(format: only)".to_string()
+    } else {
+        e.extensions()
+            .iter()
+            .map(|x| format!(".{x}"))
+            .collect::<Vec<_>>()
+            .join(" ")
     }
 }
 
@@ -39,9 +58,9 @@ pub fn list_text(r: &Registry) -> String {
     for e in r.exporters() {
         writeln!(
             s,
-            "  {:8} .{:14} {}",
+            "  {:10} {:15} {}",
             e.name(),
-            e.extensions().join(" ."),
+            extensions(e.as_ref()),
             e.doc()
         )
         .unwrap();
@@ -84,11 +103,7 @@ pub fn list_markdown(r: &Registry) -> String {
             s,
             "| `{}` | {} | {} |",
             e.name(),
-            e.extensions()
-                .iter()
-                .map(|x| format!("`.{x}`"))
-                .collect::<Vec<_>>()
-                .join(" "),
+            extensions(e.as_ref()),
             e.doc()
         )
         .unwrap();
@@ -163,9 +178,9 @@ pub fn describe(r: &Registry, id: &str) -> Result<String, String> {
     }
     if let Some(e) = r.exporters().iter().find(|e| e.name() == id) {
         return Ok(format!(
-            "export format `{}` (.{})\n\n{}\n",
+            "export format `{}` ({})\n\n{}\n",
             e.name(),
-            e.extensions().join(", ."),
+            extensions(e.as_ref()),
             e.doc()
         ));
     }
