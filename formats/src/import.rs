@@ -482,3 +482,61 @@ named_import!(
     |p: &Path, k: &str| vtk_xml::probe_vti(p, opt(k)),
     |p: &Path, k: &str| vtk_xml::read_vti(p, opt(k))
 );
+
+// ---------------------------------------------------------------------------------------
+
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TiffParams {
+    pub path: String,
+    pub spacing: Option<Lengths3>,
+    pub origin: Option<Lengths3>,
+    #[serde(rename = "as")]
+    pub as_: ImportAs,
+    pub unit: String,
+}
+
+pub struct ImportTiff;
+
+impl TypedStage for ImportTiff {
+    type Params = TiffParams;
+    fn info(&self) -> StageInfo {
+        StageInfo {
+            id: "import.tiff",
+            version: "1.0.0",
+            doc: "Reads a TIFF stack as a volume: a multi-page TIFF (page k = slice z = k) or a \
+                  directory of single-page TIFFs in file-name order, as CT software writes them. \
+                  Grayscale 8/16/32/64-bit pages; row r of a page is y = r. Preflight reads every \
+                  page header and checks that all pages share size and type.",
+            params: vec![
+                ParamSpec { name: "path", ty: "path", unit: "", doc: "multi-page TIFF file, or directory of .tif/.tiff slices (relative to the working directory)" },
+                ParamSpec { name: "spacing", ty: "length or [x, y, z]", unit: "m", doc: "voxel size (required: TIFF resolution tags are not trusted)" },
+                ParamSpec { name: "origin", ty: "[x, y, z]", unit: "m", doc: ORIGIN_DOC },
+                ParamSpec { name: "as", ty: "one of: phase_image, field", unit: "", doc: AS_DOC },
+                ParamSpec { name: "unit", ty: "unit string", unit: "", doc: UNIT_DOC },
+            ],
+            inputs: vec![],
+            outputs: outputs(),
+        }
+    }
+
+    fn preflight(&self, p: &TiffParams, _: &InputMetas) -> Result<Preflight, StageError> {
+        if p.spacing.is_none() {
+            return Err(StageError::param(
+                "spacing",
+                "give the voxel size of the stack, e.g. `spacing: 4 um`",
+            ));
+        }
+        let path = Path::new(&p.path);
+        if !path.is_dir() {
+            check_path(&p.path)?;
+        }
+        let probe = crate::tiff_io::probe_tiff(path).map_err(|e| StageError::param("path", e))?;
+        preflight_common(probe, p.as_, p.spacing, p.origin)
+    }
+
+    fn run(&self, p: &TiffParams, _: &Inputs, _: &RunContext) -> Result<Outputs, StageError> {
+        let v = crate::tiff_io::read_tiff(Path::new(&p.path)).map_err(read_failed)?;
+        finish(v, &p.path, p.as_, p.spacing, p.origin, &p.unit)
+    }
+}

@@ -21,6 +21,7 @@ pub mod import;
 pub mod netcdf_io;
 pub mod raw;
 pub mod tables;
+pub mod tiff_io;
 pub mod volume;
 pub mod vtk_xml;
 pub mod vtkhdf;
@@ -55,4 +56,5 @@ pub fn register(r: &mut Registry) {
     r.add_stage(import::ImportHdf5);
     r.add_stage(import::ImportNetcdf);
     r.add_stage(import::ImportVti);
+    r.add_stage(import::ImportTiff);
 }

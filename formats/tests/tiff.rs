@@ -1,0 +1,134 @@
+//! TIFF stacks: a multi-page file and a directory of slices read back voxel for voxel, and
+//! broken stacks refused before running.
+
+use grainpipe_core::stage::SilentReporter;
+use grainpipe_core::{Inputs, RunContext, StageError, TypedStage};
+use grainpipe_formats::import::{ImportAs, ImportTiff, Lengths3, TiffParams};
+use grainpipe_formats::tiff_io::{probe_tiff, read_tiff};
+use std::path::Path;
+use tiff::encoder::{colortype, TiffEncoder};
+
+/// Label of voxel (x, y, z): distinct per voxel within 8 bits for the small stack below.
+fn label(x: usize, y: usize, z: usize) -> u8 {
+    (x + 5 * y + 20 * z) as u8
+}
+
+fn write_multipage(path: &Path, dims: [usize; 3]) {
+    let mut enc = TiffEncoder::new(std::fs::File::create(path).unwrap()).unwrap();
+    for z in 0..dims[2] {
+        let page: Vec<u8> = (0..dims[1])
+            .flat_map(|y| (0..dims[0]).map(move |x| label(x, y, z)))
+            .collect();
+        enc.write_image::<colortype::Gray8>(dims[0] as u32, dims[1] as u32, &page)
+            .unwrap();
+    }
+}
+
+#[test]
+fn multipage_tiff_reads_back_every_voxel() {
+    let dir = tempfile::tempdir().unwrap();
+    let f = dir.path().join("stack.tif");
+    write_multipage(&f, [5, 4, 3]);
+    let probe = probe_tiff(&f).unwrap();
+    assert_eq!(probe.dims, [5, 4, 3]);
+    let params = TiffParams {
+        path: f.to_str().unwrap().into(),
+        spacing: Some(Lengths3::One(grainpipe_core::units::Q::new(4e-6))),
+        ..Default::default()
+    };
+    ImportTiff.preflight(&params, &Default::default()).unwrap();
+    let out = ImportTiff
+        .run(
+            &params,
+            &Inputs::new(),
+            &RunContext::new(0, &SilentReporter),
+        )
+        .unwrap();
+    let img = out["image"].as_phase_image().unwrap();
+    assert_eq!(img.grid.dims, [5, 4, 3]);
+    assert_eq!(img.grid.spacing, [4e-6; 3]);
+    for z in 0..3 {
+        for y in 0..4 {
+            for x in 0..5 {
+                assert_eq!(img.labels[img.grid.index(x, y, z)], label(x, y, z));
+            }
+        }
+    }
+}
+
+#[test]
+fn directory_of_16_bit_slices_in_name_order() {
+    let dir = tempfile::tempdir().unwrap();
+    // Written out of order: the file names, not creation order, give z.
+    for z in [2usize, 0, 1] {
+        let page: Vec<u16> = (0..6).map(|i| (1000 * z + i) as u16).collect();
+        let mut enc = TiffEncoder::new(
+            std::fs::File::create(dir.path().join(format!("slice_{z:03}.tiff"))).unwrap(),
+        )
+        .unwrap();
+        enc.write_image::<colortype::Gray16>(3, 2, &page).unwrap();
+    }
+    let v = read_tiff(dir.path()).unwrap();
+    assert_eq!(v.dims, [3, 2, 3]);
+    for z in 0..3 {
+        for i in 0..6 {
+            assert_eq!(v.data.get(z * 6 + i), (1000 * z + i) as f64);
+        }
+    }
+    // Values above 255 cannot be labels: `as: phase_image` fails, `as: field` works.
+    let mut p = TiffParams {
+        path: dir.path().to_str().unwrap().into(),
+        spacing: Some(Lengths3::One(grainpipe_core::units::Q::new(1e-6))),
+        as_: ImportAs::Field,
+        ..Default::default()
+    };
+    let ctx = RunContext::new(0, &SilentReporter);
+    let out = ImportTiff.run(&p, &Inputs::new(), &ctx).unwrap();
+    assert_eq!(out["field"].as_field().unwrap().data.get(17), 2005.0);
+    p.as_ = ImportAs::PhaseImage;
+    assert!(matches!(
+        ImportTiff.run(&p, &Inputs::new(), &ctx),
+        Err(StageError::Failed(_))
+    ));
+}
+
+#[test]
+fn broken_stacks_are_refused_in_preflight() {
+    let dir = tempfile::tempdir().unwrap();
+    let spacing = Some(Lengths3::One(grainpipe_core::units::Q::new(1e-6)));
+    // Slices of different sizes.
+    write_multipage(&dir.path().join("a.tif"), [4, 4, 1]);
+    write_multipage(&dir.path().join("b.tif"), [5, 4, 1]);
+    let p = TiffParams {
+        path: dir.path().to_str().unwrap().into(),
+        spacing,
+        ..Default::default()
+    };
+    match ImportTiff.preflight(&p, &Default::default()) {
+        Err(StageError::InvalidParam { key, message }) => {
+            assert_eq!(key, "path");
+            assert!(message.contains("differs from the first page"), "{message}");
+        }
+        other => panic!("{other:?}"),
+    }
+    // Not a TIFF at all.
+    let junk = dir.path().join("junk.tif");
+    std::fs::write(&junk, b"not a tiff").unwrap();
+    let p = TiffParams {
+        path: junk.to_str().unwrap().into(),
+        spacing,
+        ..Default::default()
+    };
+    assert!(matches!(
+        ImportTiff.preflight(&p, &Default::default()),
+        Err(StageError::InvalidParam { .. })
+    ));
+    // No voxel size.
+    let p = TiffParams {
+        path: junk.to_str().unwrap().into(),
+        ..Default::default()
+    };
+    assert!(
+        matches!(ImportTiff.preflight(&p, &Default::default()), Err(StageError::InvalidParam { key, .. }) if key == "spacing")
+    );
+}
