@@ -147,6 +147,15 @@ fn doc(yaml: &str) -> PipelineDoc {
     PipelineDoc::parse(Path::new("p.yaml"), yaml.to_string()).unwrap()
 }
 
+/// Plans `d` for the given target steps.
+fn plan_targets(d: &PipelineDoc, reg: &Registry, targets: &[&str]) -> grainpipe_core::engine::Plan {
+    let opts = PlanOptions {
+        targets: targets.iter().map(|t| t.to_string()).collect(),
+        ..Default::default()
+    };
+    plan(d, reg, &opts).unwrap()
+}
+
 fn column(r: &grainpipe_core::engine::RunResult, step: &str) -> Vec<f64> {
     r.outputs[step]["table"]
         .as_table()
@@ -175,15 +184,7 @@ fn cycle_through_several_steps_is_named_with_its_location() {
 #[test]
 fn only_steps_needed_by_targets_run() {
     let d = doc(CHAIN);
-    let p = plan(
-        &d,
-        &registry(),
-        &PlanOptions {
-            targets: vec!["twice".into()],
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let p = plan_targets(&d, &registry(), &["twice"]);
     let ids: Vec<&str> = p.order.iter().map(|&i| d.steps[i].id.as_str()).collect();
     assert_eq!(ids, ["src", "twice"]);
     let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
@@ -232,15 +233,7 @@ fn cache_reuses_upstream_results_and_tracks_parameter_changes() {
     let yaml = CHAIN.replace("seed: 5", "seed: 77");
     let run = |yaml: &str| {
         let d = doc(yaml);
-        let p = plan(
-            &d,
-            &reg,
-            &PlanOptions {
-                targets: vec!["twice".into()],
-                ..Default::default()
-            },
-        )
-        .unwrap();
+        let p = plan_targets(&d, &reg, &["twice"]);
         execute(&d, &p, &opts, &mut Quiet).unwrap()
     };
     let cold = run(&yaml);
@@ -275,15 +268,7 @@ fn cache_reuses_upstream_results_and_tracks_parameter_changes() {
 fn overrides_change_parameters_and_unknown_params_are_located() {
     let mut d = doc(CHAIN);
     d.apply_override("twice.factor=0.5").unwrap();
-    let p = plan(
-        &d,
-        &registry(),
-        &PlanOptions {
-            targets: vec!["twice".into()],
-            ..Default::default()
-        },
-    )
-    .unwrap();
+    let p = plan_targets(&d, &registry(), &["twice"]);
     let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
     assert_eq!(
         column(&r, "twice"),
