@@ -9,7 +9,7 @@ VENV ?= .venv
 PYTHON ?= python3
 APT_PACKAGES := libhdf5-dev libnetcdf-dev pkg-config python3-venv
 PIPE := $(CURDIR)/target/release/pipe
-DEMO_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clumps.yaml
+DEMO_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clumps.yaml pipelines/mcm.yaml
 
 .PHONY: all sysdeps pydeps build demo test lint rust-test interop bench readme-stages clean
 

@@ -19,6 +19,7 @@ pub fn builtin_registry() -> Registry {
     grainpipe_bricks::register(&mut r);
     grainpipe_sintering::register(&mut r);
     grainpipe_clumps::register(&mut r);
+    grainpipe_mcm::register(&mut r);
     r
 }
 

@@ -1,0 +1,145 @@
+//! Benchmark of mcm.stacked against the paper's Tables 4-5 (Donval et al. 2025, section 3.5):
+//! layers of (L um)^2 x 280 um at 50 % with an 8 um gap, 30 000 iteration limit, several seeds.
+//!
+//! cargo run --release -p grainpipe-mcm --example bench -- [seeds] [grains]
+//!   grains = spheres (lognormal, median radius 70 um, D50 = 140 um) or sand (the 30 real
+//!   grains of data/sand-grains as clumps at alpha = 0.9, built by pipelines/clumps.yaml).
+//! Env MCM_CASES="layers:size_um,..." overrides the cases (default Table 4 and Table 5);
+//! MCM_PHI (0.5), MCM_GAP (8e-6 m), MCM_TOL (1e-3), MCM_STEP (3000) override the fraction,
+//! gap, tolerance and iterations per contraction step; MCM_PERIODIC_Z=0 gives a free surface
+//! above each new layer.
+
+use grainpipe_core::stage::SilentReporter;
+use grainpipe_core::{Artifact, ClumpLibrary, Inputs, RunContext, TypedStage};
+use grainpipe_mcm::stages::{Stacked, StackedParams};
+use serde_json::json;
+use std::sync::Arc;
+use std::time::Instant;
+
+fn sand_library() -> ClumpLibrary {
+    use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions};
+    use grainpipe_core::pipeline::PipelineDoc;
+    struct Quiet;
+    impl grainpipe_core::engine::Observer for Quiet {
+        fn step_started(
+            &mut self,
+            _: &grainpipe_core::engine::PlannedStep,
+        ) -> Box<dyn grainpipe_core::stage::Reporter> {
+            Box::new(SilentReporter)
+        }
+        fn step_finished(
+            &mut self,
+            _: &grainpipe_core::engine::PlannedStep,
+            _: &grainpipe_core::engine::StepStats,
+        ) {
+        }
+        fn exported(&mut self, _: &std::path::Path) {}
+    }
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
+    let mut doc = PipelineDoc::load(&root.join("pipelines/clumps.yaml")).unwrap();
+    doc.exports.clear();
+    std::env::set_current_dir(&root).unwrap();
+    let mut r = grainpipe_core::Registry::new();
+    grainpipe_clumps::register(&mut r);
+    let p = plan(&doc, &r, &PlanOptions::default()).unwrap();
+    let res = execute(&doc, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
+    // All 30 garcia clumps (not the 20-draw subsample): mcm.stacked draws by Sobol itself.
+    res.outputs["clumps"]["library"]
+        .as_clump_library()
+        .unwrap()
+        .clone()
+}
+
+fn env(key: &str, default: f64) -> f64 {
+    std::env::var(key)
+        .ok()
+        .and_then(|t| t.parse::<f64>().ok())
+        .unwrap_or(default)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let seeds: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(30);
+    let grains = args.get(2).cloned().unwrap_or_else(|| "spheres".into());
+    let lib = (grains == "sand").then(sand_library);
+    if let Some(l) = &lib {
+        let n: usize = l.clumps.iter().map(|c| c.spheres.len()).sum();
+        println!(
+            "library: {} clumps, {:.0} spheres per clump on average",
+            l.clumps.len(),
+            n as f64 / l.clumps.len() as f64
+        );
+    }
+    let cases: Vec<(usize, f64)> = std::env::var("MCM_CASES")
+        .unwrap_or_else(|_| "1:560,2:560,3:560,4:560,1:280,1:420,1:840,1:1120".into())
+        .split(',')
+        .map(|c| {
+            let (l, s) = c.split_once(':').unwrap();
+            (l.parse().unwrap(), s.parse().unwrap())
+        })
+        .collect();
+    println!("| layers | size (um)^2 | grains | median time (s) | max time (s) | failures / seeds | median iterations |");
+    println!("|---|---|---|---|---|---|---|");
+    for (layers, size) in cases {
+        let mut times = Vec::new();
+        let mut iters = Vec::new();
+        let mut fails = 0;
+        let mut grains_n = 0;
+        for seed in 0..seeds {
+            let p: StackedParams = serde_json::from_value(json!({
+                "layers": layers, "layer_size": [size * 1e-6, size * 1e-6],
+                "layer_thickness": 280e-6, "volume_fraction": env("MCM_PHI", 0.5), "min_gap": env("MCM_GAP", 8e-6),
+                "radius": {"kind": "lognormal", "median": "70 um", "sigma": 0.2, "min": "40 um", "max": "120 um"},
+                "tolerance": env("MCM_TOL", 1e-3),
+                "step_iterations": env("MCM_STEP", 3000.0) as usize,
+                "periodic_z": env("MCM_PERIODIC_Z", 1.0) != 0.0,
+            }))
+            .unwrap();
+            let mut inputs = Inputs::new();
+            if let Some(l) = &lib {
+                inputs.insert(
+                    "library".into(),
+                    Arc::new(Artifact::ClumpLibrary(l.clone())),
+                );
+            }
+            let t0 = Instant::now();
+            let r = Stacked.run(&p, &inputs, &RunContext::new(seed, &SilentReporter));
+            let dt = t0.elapsed().as_secs_f64();
+            match r {
+                Ok(out) => {
+                    let rep = out["report"].as_table().unwrap();
+                    if let grainpipe_core::ColumnData::I64(v) =
+                        &rep.column("iterations").unwrap().data
+                    {
+                        iters.push(v.iter().sum::<i64>() as f64);
+                    }
+                    if let grainpipe_core::ColumnData::I64(v) = &rep.column("grains").unwrap().data
+                    {
+                        grains_n = v.iter().sum::<i64>();
+                    }
+                    times.push(dt);
+                }
+                Err(e) => {
+                    fails += 1;
+                    times.push(dt);
+                    eprintln!("layers {layers}, {size} um, seed {seed}: {e}");
+                }
+            }
+        }
+        let med = |v: &mut Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            if v.is_empty() {
+                f64::NAN
+            } else {
+                v[v.len() / 2]
+            }
+        };
+        let max = times.iter().cloned().fold(0.0, f64::max);
+        println!(
+            "| {layers} | {size} | {grains_n} | {:.2} | {:.2} | {fails} / {seeds} | {:.0} |",
+            med(&mut times),
+            max,
+            med(&mut iters)
+        );
+    }
+}

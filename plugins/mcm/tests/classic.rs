@@ -1,0 +1,116 @@
+mod common;
+use common::*;
+use grainpipe_mcm::stages::Classic;
+use serde_json::json;
+
+#[test]
+fn monodisperse_spheres_reach_0_60() {
+    let out = run(
+        &Classic,
+        json!({"count": 150, "volume_fraction": 0.61, "radius": {"kind": "fixed", "value": 1e-4}}),
+        None,
+        1,
+    )
+    .unwrap();
+    let p = packing(&out);
+    let phi = p.volume_fraction();
+    println!("{:?}", out["report"]);
+    assert!(phi >= 0.60, "phi = {phi}");
+    let g = min_surface_gap(p);
+    assert!(g >= 0.0, "overlap {g}");
+}
+
+#[test]
+fn polydisperse_spheres_with_gap_have_no_overlap_beyond_min_gap() {
+    // 60 spheres, radii uniform in [40, 80] um, 5 um gap: small enough for the O(n^2 * 125)
+    // brute-force check.
+    let gap = 5e-6;
+    let out = run(
+        &Classic,
+        json!({"count": 60, "volume_fraction": 0.5, "min_gap": gap,
+               "radius": {"kind": "uniform", "min": "40 um", "max": "80 um"}}),
+        None,
+        7,
+    )
+    .unwrap();
+    let p = packing(&out);
+    let g = min_surface_gap(p);
+    // The solver pads the gap by its tolerance, so the true gap is at least min_gap (up to
+    // rounding of positions ~1e-16 m).
+    assert!(g >= gap - 1e-12, "closest pair gap {g} < {gap}");
+    assert!((p.volume_fraction() - 0.5).abs() < 1e-9);
+    assert_eq!(p.bodies.len(), 60);
+}
+
+#[test]
+fn clumps_with_periodic_images_do_not_overlap() {
+    let lib = rods();
+    let out = run(
+        &Classic,
+        json!({"count": 40, "volume_fraction": 0.45, "min_gap": 2e-6}),
+        Some(&lib),
+        3,
+    )
+    .unwrap();
+    let p = packing(&out);
+    assert!(p.library.is_some());
+    let g = min_surface_gap(p);
+    assert!(g >= 2e-6 - 1e-12, "closest pair gap {g}");
+    // Box sized for 40 grains at 45 %: fraction exact up to rounding.
+    assert!((p.volume_fraction() - 0.45).abs() < 1e-9);
+}
+
+#[test]
+fn impossible_parameters_are_rejected_in_preflight() {
+    for (params, key) in [
+        (json!({"volume_fraction": 0.8}), "volume_fraction"),
+        (json!({"beta": 0.5}), "beta"),
+        (json!({"size": [1e-3, 0.0, 1e-3]}), "size"),
+    ] {
+        match run(&Classic, params, None, 1) {
+            Err(grainpipe_core::StageError::InvalidParam { key: k, .. }) => assert_eq!(k, key),
+            other => panic!("expected InvalidParam {key}, got {:?}", other.map(|_| ())),
+        }
+    }
+}
+
+#[test]
+fn iteration_limit_fails_with_the_energy_reached() {
+    // 0.70 is above random close packing (0.64) for monodisperse spheres: unreachable.
+    let e = run(
+        &Classic,
+        json!({"count": 60, "volume_fraction": 0.70, "max_iterations": 4000, "step_iterations": 500}),
+        None,
+        1,
+    )
+    .expect_err("must fail");
+    let msg = e.to_string();
+    assert!(matches!(e, grainpipe_core::StageError::Failed(_)), "{msg}");
+    assert!(
+        msg.contains("overlap energy reached") && msg.contains("layer 0"),
+        "{msg}"
+    );
+    assert!(!msg.contains("NaN"), "{msg}");
+}
+
+#[test]
+fn same_seed_same_packing_under_1_and_2_threads() {
+    let lib = rods();
+    let go = |threads: usize| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                let out = run(
+                    &Classic,
+                    json!({"count": 40, "volume_fraction": 0.45}),
+                    Some(&lib),
+                    11,
+                )
+                .unwrap();
+                packing(&out).clone()
+            })
+    };
+    assert_eq!(go(1), go(2));
+}
