@@ -584,6 +584,17 @@ pub trait Observer {
     fn exported(&mut self, path: &Path);
 }
 
+/// An observer that shows nothing (tests, benchmarks, embedding).
+pub struct SilentObserver;
+
+impl Observer for SilentObserver {
+    fn step_started(&mut self, _: &PlannedStep) -> Box<dyn Reporter> {
+        Box::new(crate::stage::SilentReporter)
+    }
+    fn step_finished(&mut self, _: &PlannedStep, _: &StepStats) {}
+    fn exported(&mut self, _: &Path) {}
+}
+
 /// How one step went.
 #[derive(Clone, Debug)]
 pub struct StepStats {

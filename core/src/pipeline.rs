@@ -296,6 +296,15 @@ impl PipelineDoc {
         self.steps.iter().enumerate().find(|(_, s)| s.id == id)
     }
 
+    /// Moves every export under `dir`: a path below `out/` keeps its part after `out/`,
+    /// any other relative path is appended as it is.
+    pub fn redirect_exports(&mut self, dir: &Path) {
+        for e in &mut self.exports {
+            let rel = e.to.strip_prefix("out").unwrap_or(&e.to).to_path_buf();
+            e.to = dir.join(rel);
+        }
+    }
+
     /// Applies a command-line override `step.key=value`; the value is read as YAML
     /// (so `140 um` stays a unit string and `[1, 2]` a list).
     pub fn apply_override(&mut self, assignment: &str) -> Result<(), PipelineError> {

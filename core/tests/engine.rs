@@ -1,11 +1,8 @@
 //! The pipeline engine: cycles, laziness, caching, seeds and overrides, with small test
 //! stages whose results are known exactly.
 
-use grainpipe_core::engine::{
-    execute, plan, Observer, PlanOptions, PlannedStep, RunOptions, StepStats,
-};
+use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
 use grainpipe_core::pipeline::{ErrorClass, PipelineDoc};
-use grainpipe_core::stage::{Reporter, SilentReporter};
 use grainpipe_core::{
     Artifact, ArtifactKind, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, Registry,
     RunContext, StageError, StageInfo, Table, TypedStage,
@@ -134,15 +131,6 @@ fn registry() -> Registry {
     r
 }
 
-struct Quiet;
-impl Observer for Quiet {
-    fn step_started(&mut self, _: &PlannedStep) -> Box<dyn Reporter> {
-        Box::new(SilentReporter)
-    }
-    fn step_finished(&mut self, _: &PlannedStep, _: &StepStats) {}
-    fn exported(&mut self, _: &Path) {}
-}
-
 fn doc(yaml: &str) -> PipelineDoc {
     PipelineDoc::parse(Path::new("p.yaml"), yaml.to_string()).unwrap()
 }
@@ -187,7 +175,7 @@ fn only_steps_needed_by_targets_run() {
     let p = plan_targets(&d, &registry(), &["twice"]);
     let ids: Vec<&str> = p.order.iter().map(|&i| d.steps[i].id.as_str()).collect();
     assert_eq!(ids, ["src", "twice"]);
-    let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
+    let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut SilentObserver).unwrap();
     assert!(!r.outputs.contains_key("unused"));
     // The scaled column is exactly twice the source (a multiplication by 2 is exact in binary).
     let src = column(&r, "src");
@@ -203,7 +191,7 @@ fn same_seed_same_numbers_other_seed_other_numbers_and_streams_per_step() {
     let run = |yaml: &str| {
         let d = doc(yaml);
         let p = plan(&d, &reg, &PlanOptions::default()).unwrap();
-        execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap()
+        execute(&d, &p, &RunOptions { cache_dir: None }, &mut SilentObserver).unwrap()
     };
     let a = run(CHAIN);
     let b = run(CHAIN);
@@ -234,7 +222,7 @@ fn cache_reuses_upstream_results_and_tracks_parameter_changes() {
     let run = |yaml: &str| {
         let d = doc(yaml);
         let p = plan_targets(&d, &reg, &["twice"]);
-        execute(&d, &p, &opts, &mut Quiet).unwrap()
+        execute(&d, &p, &opts, &mut SilentObserver).unwrap()
     };
     let cold = run(&yaml);
     assert!(cold.stats.values().all(|s| !s.from_cache));
@@ -269,7 +257,7 @@ fn overrides_change_parameters_and_unknown_params_are_located() {
     let mut d = doc(CHAIN);
     d.apply_override("twice.factor=0.5").unwrap();
     let p = plan_targets(&d, &registry(), &["twice"]);
-    let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
+    let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut SilentObserver).unwrap();
     assert_eq!(
         column(&r, "twice"),
         column(&r, "src")
@@ -316,7 +304,7 @@ fn preflight_errors_and_memory_limit_stop_before_running() {
 fn a_failing_stage_is_a_run_error_with_its_message() {
     let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {fail: true}\n");
     let p = plan(&d, &registry(), &PlanOptions::default()).unwrap();
-    let e = execute(&d, &p, &RunOptions { cache_dir: None }, &mut Quiet)
+    let e = execute(&d, &p, &RunOptions { cache_dir: None }, &mut SilentObserver)
         .err()
         .unwrap();
     assert_eq!(e.class, ErrorClass::Run);

@@ -1,11 +1,8 @@
 //! Helpers for the workspace-level tests in `tests/tests/`: run a shipped pipeline with its
 //! outputs redirected to a temporary directory.
 
-use grainpipe_core::engine::{
-    execute, plan, Observer, PlanOptions, PlannedStep, RunOptions, RunResult, StepStats,
-};
+use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, RunResult, SilentObserver};
 use grainpipe_core::pipeline::{PipelineDoc, PipelineError};
-use grainpipe_core::stage::{Reporter, SilentReporter};
 use std::path::{Path, PathBuf};
 
 /// The repository root.
@@ -14,15 +11,6 @@ pub fn repo_root() -> PathBuf {
         .parent()
         .expect("workspace root")
         .to_path_buf()
-}
-
-struct Quiet;
-impl Observer for Quiet {
-    fn step_started(&mut self, _: &PlannedStep) -> Box<dyn Reporter> {
-        Box::new(SilentReporter)
-    }
-    fn step_finished(&mut self, _: &PlannedStep, _: &StepStats) {}
-    fn exported(&mut self, _: &Path) {}
 }
 
 /// Loads `pipelines/<name>`, applies `overrides`, rewrites export paths `out/...` into
@@ -37,11 +25,13 @@ pub fn run_pipeline(
     for o in overrides {
         doc.apply_override(o)?;
     }
-    for e in &mut doc.exports {
-        let rel = e.to.strip_prefix("out").unwrap_or(&e.to).to_path_buf();
-        e.to = out_dir.join(rel);
-    }
+    doc.redirect_exports(out_dir);
     let registry = grainpipe_cli::builtin_registry();
     let p = plan(&doc, &registry, &PlanOptions::default())?;
-    execute(&doc, &p, &RunOptions { cache_dir: None }, &mut Quiet)
+    execute(
+        &doc,
+        &p,
+        &RunOptions { cache_dir: None },
+        &mut SilentObserver,
+    )
 }

@@ -2,22 +2,10 @@
 //! formats crate: every real grain of data/sand-grains becomes a connected clump at
 //! alpha = 0.9, and the exports are written.
 
-use grainpipe_core::engine::{
-    execute, plan, Observer, PlanOptions, PlannedStep, RunOptions, StepStats,
-};
+use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
 use grainpipe_core::pipeline::PipelineDoc;
-use grainpipe_core::stage::{Reporter, SilentReporter};
 use grainpipe_core::{ColumnData, Registry};
 use std::path::Path;
-
-struct Quiet;
-impl Observer for Quiet {
-    fn step_started(&mut self, _: &PlannedStep) -> Box<dyn Reporter> {
-        Box::new(SilentReporter)
-    }
-    fn step_finished(&mut self, _: &PlannedStep, _: &StepStats) {}
-    fn exported(&mut self, _: &Path) {}
-}
 
 fn registry() -> Registry {
     let mut r = Registry::new();
@@ -36,13 +24,16 @@ fn real_grains_become_connected_clumps_at_alpha_0_9() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut doc = PipelineDoc::load(&root.join("pipelines/clumps.yaml")).unwrap();
     let out = tempfile::tempdir().unwrap();
-    for e in &mut doc.exports {
-        let rel = e.to.strip_prefix("out").unwrap_or(&e.to).to_path_buf();
-        e.to = out.path().join(rel);
-    }
+    doc.redirect_exports(out.path());
     let reg = registry();
     let p = plan(&doc, &reg, &PlanOptions::default()).unwrap();
-    let res = execute(&doc, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
+    let res = execute(
+        &doc,
+        &p,
+        &RunOptions { cache_dir: None },
+        &mut SilentObserver,
+    )
+    .unwrap();
     let report = res.outputs["clumps"]["report"].as_table().unwrap().clone();
     let cov = report.f64_column("coverage").unwrap();
     let ColumnData::I64(spheres) = &report.column("spheres").unwrap().data else {

@@ -17,24 +17,8 @@ use std::sync::Arc;
 use std::time::Instant;
 
 fn sand_library() -> ClumpLibrary {
-    use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions};
+    use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
     use grainpipe_core::pipeline::PipelineDoc;
-    struct Quiet;
-    impl grainpipe_core::engine::Observer for Quiet {
-        fn step_started(
-            &mut self,
-            _: &grainpipe_core::engine::PlannedStep,
-        ) -> Box<dyn grainpipe_core::stage::Reporter> {
-            Box::new(SilentReporter)
-        }
-        fn step_finished(
-            &mut self,
-            _: &grainpipe_core::engine::PlannedStep,
-            _: &grainpipe_core::engine::StepStats,
-        ) {
-        }
-        fn exported(&mut self, _: &std::path::Path) {}
-    }
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut doc = PipelineDoc::load(&root.join("pipelines/clumps.yaml")).unwrap();
     doc.exports.clear();
@@ -42,7 +26,13 @@ fn sand_library() -> ClumpLibrary {
     let mut r = grainpipe_core::Registry::new();
     grainpipe_clumps::register(&mut r);
     let p = plan(&doc, &r, &PlanOptions::default()).unwrap();
-    let res = execute(&doc, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
+    let res = execute(
+        &doc,
+        &p,
+        &RunOptions { cache_dir: None },
+        &mut SilentObserver,
+    )
+    .unwrap();
     // All 30 garcia clumps (not the 20-draw subsample): mcm.stacked draws by Sobol itself.
     res.outputs["clumps"]["library"]
         .as_clump_library()

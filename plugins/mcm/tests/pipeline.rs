@@ -1,21 +1,9 @@
 //! pipelines/mcm.yaml through the engine with a registry holding this crate and the formats.
 
-use grainpipe_core::engine::{
-    execute, plan, Observer, PlanOptions, PlannedStep, RunOptions, StepStats,
-};
+use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
 use grainpipe_core::pipeline::PipelineDoc;
-use grainpipe_core::stage::{Reporter, SilentReporter};
 use grainpipe_core::Registry;
 use std::path::Path;
-
-struct Quiet;
-impl Observer for Quiet {
-    fn step_started(&mut self, _: &PlannedStep) -> Box<dyn Reporter> {
-        Box::new(SilentReporter)
-    }
-    fn step_finished(&mut self, _: &PlannedStep, _: &StepStats) {}
-    fn exported(&mut self, _: &Path) {}
-}
 
 fn registry() -> Registry {
     let mut r = Registry::new();
@@ -34,13 +22,16 @@ fn mcm_pipeline_runs_and_exports() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut doc = PipelineDoc::load(&root.join("pipelines/mcm.yaml")).unwrap();
     let out = tempfile::tempdir().unwrap();
-    for e in &mut doc.exports {
-        let rel = e.to.strip_prefix("out").unwrap_or(&e.to).to_path_buf();
-        e.to = out.path().join(rel);
-    }
+    doc.redirect_exports(out.path());
     let reg = registry();
     let p = plan(&doc, &reg, &PlanOptions::default()).unwrap();
-    let res = execute(&doc, &p, &RunOptions { cache_dir: None }, &mut Quiet).unwrap();
+    let res = execute(
+        &doc,
+        &p,
+        &RunOptions { cache_dir: None },
+        &mut SilentObserver,
+    )
+    .unwrap();
     let classic = res.outputs["classic"]["packing"].as_packing().unwrap();
     assert_eq!(classic.bodies.len(), 300);
     // 300 equal spheres in a cube sized for 60 %: exact up to rounding.
