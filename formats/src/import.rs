@@ -46,6 +46,30 @@ const ORIGIN_DOC: &str = "lower grid corner [x, y, z]; overrides the file's (def
 const UNIT_DOC: &str = "unit of a field (overrides the file's)";
 const PATH_DOC: &str = "input file (relative to the working directory)";
 
+/// The `origin`, `as` and `unit` parameters every import stage ends with.
+fn trailing_specs() -> [ParamSpec; 3] {
+    [
+        ParamSpec {
+            name: "origin",
+            ty: "[x, y, z]",
+            unit: "m",
+            doc: ORIGIN_DOC,
+        },
+        ParamSpec {
+            name: "as",
+            ty: "one of: phase_image, field",
+            unit: "",
+            doc: AS_DOC,
+        },
+        ParamSpec {
+            name: "unit",
+            ty: "unit string",
+            unit: "",
+            doc: UNIT_DOC,
+        },
+    ]
+}
+
 fn outputs() -> Vec<PortSpec> {
     vec![
         PortSpec::optional(
@@ -285,25 +309,10 @@ impl TypedStage for ImportRaw {
                     unit: "m",
                     doc: "voxel size (required)",
                 },
-                ParamSpec {
-                    name: "origin",
-                    ty: "[x, y, z]",
-                    unit: "m",
-                    doc: ORIGIN_DOC,
-                },
-                ParamSpec {
-                    name: "as",
-                    ty: "one of: phase_image, field",
-                    unit: "",
-                    doc: AS_DOC,
-                },
-                ParamSpec {
-                    name: "unit",
-                    ty: "unit string",
-                    unit: "",
-                    doc: UNIT_DOC,
-                },
-            ],
+            ]
+            .into_iter()
+            .chain(trailing_specs())
+            .collect(),
             inputs: vec![],
             outputs: outputs(),
         }
@@ -399,25 +408,10 @@ macro_rules! named_import {
                             unit: "m",
                             doc: SPACING_DOC,
                         },
-                        ParamSpec {
-                            name: "origin",
-                            ty: "[x, y, z]",
-                            unit: "m",
-                            doc: ORIGIN_DOC,
-                        },
-                        ParamSpec {
-                            name: "as",
-                            ty: "one of: phase_image, field",
-                            unit: "",
-                            doc: AS_DOC,
-                        },
-                        ParamSpec {
-                            name: "unit",
-                            ty: "unit string",
-                            unit: "",
-                            doc: UNIT_DOC,
-                        },
-                    ],
+                    ]
+                    .into_iter()
+                    .chain(trailing_specs())
+                    .collect(),
                     inputs: vec![],
                     outputs: outputs(),
                 }
@@ -511,10 +505,10 @@ impl TypedStage for ImportTiff {
             params: vec![
                 ParamSpec { name: "path", ty: "path", unit: "", doc: "multi-page TIFF file, or directory of .tif/.tiff slices (relative to the working directory)" },
                 ParamSpec { name: "spacing", ty: "length or [x, y, z]", unit: "m", doc: "voxel size (required: TIFF resolution tags are not trusted)" },
-                ParamSpec { name: "origin", ty: "[x, y, z]", unit: "m", doc: ORIGIN_DOC },
-                ParamSpec { name: "as", ty: "one of: phase_image, field", unit: "", doc: AS_DOC },
-                ParamSpec { name: "unit", ty: "unit string", unit: "", doc: UNIT_DOC },
-            ],
+            ]
+            .into_iter()
+            .chain(trailing_specs())
+            .collect(),
             inputs: vec![],
             outputs: outputs(),
         }
