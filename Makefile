@@ -54,9 +54,9 @@ interop: sysdeps pydeps build
 test: lint rust-test interop
 
 bench: build
-	@for d in plugins/*/examples/bench.rs; do \
+	@for d in plugins/*/examples/*_bench.rs; do \
 	  crate=grainpipe-$$(basename $$(dirname $$(dirname $$d))); \
-	  echo "== $$crate"; $(CARGO) run --release -q -p $$crate --example bench || exit $$?; \
+	  echo "== $$crate"; $(CARGO) run --release -q -p $$crate --example $$(basename $$d .rs) || exit $$?; \
 	done
 
 # Regenerates the stage table in README.md from the registry.

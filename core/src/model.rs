@@ -121,6 +121,27 @@ pub struct Clump {
     pub source: String,
 }
 
+impl Clump {
+    /// The clump scaled linearly by `s` about its centroid (volume x s^3, inertia x s^5).
+    pub fn scaled(&self, s: f64) -> Clump {
+        Clump {
+            spheres: self
+                .spheres
+                .iter()
+                .map(|x| ClumpSphere {
+                    offset: x.offset.map(|v| v * s),
+                    radius: x.radius * s,
+                })
+                .collect(),
+            volume: self.volume * s.powi(3),
+            bounding_radius: self.bounding_radius * s,
+            principal_inertia: self.principal_inertia.map(|v| v * s.powi(5)),
+            principal_axes: self.principal_axes,
+            source: self.source.clone(),
+        }
+    }
+}
+
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ClumpLibrary {
     pub clumps: Vec<Clump>,

@@ -6,6 +6,7 @@ use crate::garcia::{
 };
 use crate::grains::{series_to_grains, GrainMask};
 use grainpipe_core::fsutil::atomic_write;
+use grainpipe_core::units::{Length, Q};
 use grainpipe_core::*;
 use nalgebra::{Matrix3, SymmetricEigen};
 use rayon::prelude::*;
@@ -250,6 +251,7 @@ pub struct LibraryParams {
     pub count: usize,
     pub sampling: String,
     pub scale: f64,
+    pub max_bounding_diameter: Q<Length>,
 }
 
 impl Default for LibraryParams {
@@ -259,6 +261,7 @@ impl Default for LibraryParams {
             count: 200,
             sampling: "sobol".into(),
             scale: 1.0,
+            max_bounding_diameter: Q::new(0.0),
         }
     }
 }
@@ -282,24 +285,6 @@ pub fn subsample(d: &[f64], count: usize, sobol: bool, seed: u64) -> Vec<usize> 
             order[((u * m as f64) as usize).min(m - 1)]
         })
         .collect()
-}
-
-pub fn scale_clump(c: &Clump, s: f64) -> Clump {
-    Clump {
-        spheres: c
-            .spheres
-            .iter()
-            .map(|x| ClumpSphere {
-                offset: x.offset.map(|v| v * s),
-                radius: x.radius * s,
-            })
-            .collect(),
-        volume: c.volume * s.powi(3),
-        bounding_radius: c.bounding_radius * s,
-        principal_inertia: c.principal_inertia.map(|v| v * s.powi(5)),
-        principal_axes: c.principal_axes,
-        source: c.source.clone(),
-    }
 }
 
 pub fn library_table(l: &ClumpLibrary) -> Table {
@@ -371,7 +356,7 @@ impl TypedStage for Library {
     fn info(&self) -> StageInfo {
         StageInfo {
             id: "clumps.library",
-            version: "1.0.0",
+            version: "1.1.0",
             doc: "A reduced clump library: N clumps drawn by scrambled Sobol sampling of the \
                   bounding-sphere diameter (paper, Remark 2), optionally rescaled (the paper \
                   rescales GS14 clumps by 19/14 for GS19 sand); per-clump table and a gallery \
@@ -394,6 +379,12 @@ impl TypedStage for Library {
                     ty: "number > 0",
                     unit: "",
                     doc: "length factor applied to every clump (paper: 19/14 = 1.357 for GS19)",
+                },
+                ParamSpec {
+                    name: "max_bounding_diameter",
+                    ty: "length",
+                    unit: "m",
+                    doc: "drop clumps whose bounding-sphere diameter (after `scale`) exceeds this before drawing; 0 = no limit (paper, section 3.5: fixed to the layer thickness, 280 um)",
                 },
             ],
             inputs: vec![PortSpec::new(
@@ -433,6 +424,13 @@ impl TypedStage for Library {
                 format!("must be positive, got {}", p.scale),
             ));
         }
+        let dmax = p.max_bounding_diameter.si();
+        if !(dmax.is_finite() && dmax >= 0.0) {
+            return Err(StageError::param(
+                "max_bounding_diameter",
+                format!("must be >= 0 (0 = no limit), got {dmax}"),
+            ));
+        }
         if p.count > u32::MAX as usize {
             return Err(StageError::param("count", "too large"));
         }
@@ -448,20 +446,37 @@ impl TypedStage for Library {
         if full.clumps.is_empty() {
             return Err(StageError::input("library", "the library is empty"));
         }
-        let picked: Vec<usize> = if p.sampling == "all" || p.count == 0 {
-            (0..full.clumps.len()).collect()
-        } else {
-            let d: Vec<f64> = full
+        let dmax = p.max_bounding_diameter.si();
+        let eligible: Vec<usize> = (0..full.clumps.len())
+            .filter(|&i| dmax == 0.0 || 2.0 * full.clumps[i].bounding_radius * p.scale <= dmax)
+            .collect();
+        if eligible.is_empty() {
+            let smallest = full
                 .clumps
                 .iter()
-                .map(|c| 2.0 * c.bounding_radius)
+                .map(|c| 2.0 * c.bounding_radius * p.scale)
+                .fold(f64::INFINITY, f64::min);
+            return Err(StageError::param(
+                "max_bounding_diameter",
+                format!("{dmax:e} m leaves no clump (smallest bounding diameter {smallest:e} m)"),
+            ));
+        }
+        let picked: Vec<usize> = if p.sampling == "all" || p.count == 0 {
+            eligible
+        } else {
+            let d: Vec<f64> = eligible
+                .iter()
+                .map(|&i| 2.0 * full.clumps[i].bounding_radius)
                 .collect();
             subsample(&d, p.count, p.sampling == "sobol", ctx.seed)
+                .into_iter()
+                .map(|k| eligible[k])
+                .collect()
         };
         let lib = ClumpLibrary {
             clumps: picked
                 .iter()
-                .map(|&i| scale_clump(&full.clumps[i], p.scale))
+                .map(|&i| full.clumps[i].scaled(p.scale))
                 .collect(),
             source: format!(
                 "{} | clumps.library {} x{} scale {}",

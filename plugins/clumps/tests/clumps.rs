@@ -376,6 +376,64 @@ fn same_seed_same_clumps_under_one_and_two_threads() {
 }
 
 #[test]
+fn library_cap_on_bounding_diameter_keeps_exactly_the_clumps_below_it() {
+    use grainpipe_core::stage::{RunContext, SilentReporter};
+    use grainpipe_core::units::Q;
+    use grainpipe_core::{Artifact, Inputs, StageError, TypedStage};
+    let ctx = RunContext::new(3, &SilentReporter);
+    let g = grainpipe_clumps::grains::Synthetic
+        .run(
+            &SyntheticParams {
+                count: 8,
+                ..SyntheticParams::default()
+            },
+            &Inputs::new(),
+            &ctx,
+        )
+        .unwrap();
+    let mut inp = Inputs::new();
+    inp.insert("grains".into(), std::sync::Arc::new(g["grains"].clone()));
+    let c = grainpipe_clumps::clumps::Garcia
+        .run(&Default::default(), &inp, &ctx)
+        .unwrap();
+    let Artifact::ClumpLibrary(full) = c["library"].clone() else {
+        panic!()
+    };
+    let mut d: Vec<f64> = full
+        .clumps
+        .iter()
+        .map(|c| 2.0 * c.bounding_radius)
+        .collect();
+    d.sort_by(f64::total_cmp);
+    // A cap between the 4th and 5th smallest diameters, applied after a scale of 2.
+    let cap = d[3] + 0.5 * (d[4] - d[3]);
+    let mut inp2 = Inputs::new();
+    inp2.insert("library".into(), std::sync::Arc::new(c["library"].clone()));
+    let params = |cap: f64| grainpipe_clumps::clumps::LibraryParams {
+        sampling: "all".into(),
+        scale: 2.0,
+        max_bounding_diameter: Q::new(2.0 * cap),
+        ..Default::default()
+    };
+    let l = grainpipe_clumps::clumps::Library
+        .run(&params(cap), &inp2, &ctx)
+        .unwrap();
+    let Artifact::ClumpLibrary(lib) = l["library"].clone() else {
+        panic!()
+    };
+    assert_eq!(lib.clumps.len(), 4);
+    assert!(lib
+        .clumps
+        .iter()
+        .all(|c| 2.0 * c.bounding_radius <= 2.0 * cap));
+    // Below the smallest clump nothing is left: a parameter error, not an empty library.
+    assert!(matches!(
+        grainpipe_clumps::clumps::Library.run(&params(0.5 * d[0]), &inp2, &ctx),
+        Err(StageError::InvalidParam { .. })
+    ));
+}
+
+#[test]
 fn harmonic_grains_have_the_vcctl_volumes() {
     use grainpipe_clumps::shape::{Harmonics, StarShape};
     // data/sand-grains/README.md: V (mm^3) computed on a 96 x 192 Gauss grid, matching the

@@ -2,9 +2,9 @@
 //! (Remarks 1-2), initial placement in the enlarged cell (eq. 2.2), the contraction phases
 //! with an adaptive schedule that backs off when the overlap removal gets stuck.
 
-use crate::engine::{Grain, Shape, System};
+use crate::engine::{Grain, Minimised, Shape, System, Worst};
 use grainpipe_core::distributions::SizeDistribution;
-use grainpipe_core::{Clump, ClumpLibrary};
+use grainpipe_core::ClumpLibrary;
 use nalgebra::{UnitQuaternion, Vector3};
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
@@ -83,23 +83,14 @@ impl Source<'_> {
     }
 }
 
-pub fn scale_clump(c: &Clump, s: f64) -> Clump {
-    let mut out = c.clone();
-    for sp in &mut out.spheres {
-        sp.offset = sp.offset.map(|x| x * s);
-        sp.radius *= s;
-    }
-    out.volume *= s.powi(3);
-    out.bounding_radius *= s;
-    out.principal_inertia = out.principal_inertia.map(|x| x * s.powi(5));
-    out
-}
-
 /// Uniformly distributed random rotation (normalised 4-D Gaussian).
 pub fn random_rotation(rng: &mut ChaCha8Rng) -> UnitQuaternion<f64> {
     let q: [f64; 4] = [0; 4].map(|_| StandardNormal.sample(rng));
     UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]))
 }
+
+/// Random initial positions tried per grain before the least overlapping one is kept.
+pub const PLACE_ATTEMPTS: usize = 200;
 
 /// Paper, section 2.2: "in the initial configuration, the grains should not overlap". Draws
 /// up to `attempts` positions (from `draw`) and orientations for grain `i` and keeps the first
@@ -110,13 +101,24 @@ pub fn place(
     i: usize,
     rng: &mut ChaCha8Rng,
     attempts: usize,
+    draw: impl FnMut(&mut ChaCha8Rng) -> Vector3<f64>,
+) {
+    place_among(sys, i, 0..i, rng, attempts, draw)
+}
+
+fn place_among(
+    sys: &mut System,
+    i: usize,
+    others: std::ops::Range<usize>,
+    rng: &mut ChaCha8Rng,
+    attempts: usize,
     mut draw: impl FnMut(&mut ChaCha8Rng) -> Vector3<f64>,
 ) {
     let mut best = (f64::INFINITY, sys.grains[i].pos, sys.grains[i].rot);
     for _ in 0..attempts {
         sys.grains[i].pos = draw(rng);
         sys.grains[i].rot = random_rotation(rng);
-        let o = sys.max_overlap(i, 0..i);
+        let o = sys.max_overlap(i, others.clone());
         if o < best.0 {
             best = (o, sys.grains[i].pos, sys.grains[i].rot);
         }
@@ -143,14 +145,70 @@ pub struct Schedule {
     pub max_iterations: usize,
 }
 
+/// One overlap-removal phase of the convergence history.
+#[derive(Clone, Copy, Debug)]
+pub struct Phase {
+    /// Contraction scale the phase relaxed at (1 = final size).
+    pub scale: f64,
+    pub iterations: usize,
+    /// eq. (2.6) at the user's gap plus the soft-box penalty [m^2].
+    pub energy: f64,
+    /// Largest violation with the padded gap [m].
+    pub max_violation: f64,
+    pub outcome: Outcome,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    /// Converged: the contraction is kept.
+    Converged,
+    /// Not converged within `step_iterations` or stalled: undone.
+    Stuck,
+    /// Re-expanded, shaken and the worst grain relocated, then relaxed.
+    Shaken,
+    /// A shake whose relaxation did not converge: undone.
+    ShakeFailed,
+}
+
+impl Outcome {
+    pub fn name(self) -> &'static str {
+        match self {
+            Outcome::Converged => "converged",
+            Outcome::Stuck => "stuck",
+            Outcome::Shaken => "shaken",
+            Outcome::ShakeFailed => "shake_failed",
+        }
+    }
+}
+
 /// What one contraction run reached.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Debug, Default)]
 pub struct RunStats {
     pub iterations: usize,
     pub steps: usize,
     pub backoffs: usize,
+    /// Back-offs that re-expanded and shook the layer (see `contract`).
+    pub shakes: usize,
     pub energy: f64,
     pub max_delta: f64,
+    pub worst: Worst,
+    pub history: Vec<Phase>,
+}
+
+impl RunStats {
+    fn record(&mut self, scale: f64, m: &Minimised, outcome: Outcome) {
+        self.iterations += m.iterations;
+        self.energy = m.energy;
+        self.max_delta = m.max_delta;
+        self.worst = m.worst;
+        self.history.push(Phase {
+            scale,
+            iterations: m.iterations,
+            energy: m.energy,
+            max_violation: m.max_delta,
+            outcome,
+        });
+    }
 }
 
 /// Contraction geometry: isotropic about the origin (classic) or along z about `z0` for the
@@ -196,74 +254,197 @@ fn apply(sys: &mut System, mode: &Mode, s_old: f64, s_new: f64) {
     sys.invalidate();
 }
 
+/// Relative re-expansion of the cell before a shake: room for the shaken grains, undone by
+/// the next contraction steps.
+const SHAKE_EXPANSION: f64 = 0.02;
+/// Random displacement (in bounding radii) and rotation (rad) of a shake.
+const SHAKE_AMPLITUDE: f64 = 0.05;
+/// Reach of a shake around the stuck grain, in largest bounding radii.
+const SHAKE_REACH: f64 = 4.0;
+
+/// Moves every mobile grain within `SHAKE_REACH` largest bounding radii of grain `around`
+/// (every mobile grain if `None`) by a random vector in the ball of radius `amp` bounding
+/// radii and turns it by a random angle of at most `amp` rad, in body order
+/// (deterministic). A jam is local: shaking only its surroundings keeps the rest relaxed.
+fn shake(sys: &mut System, rng: &mut ChaCha8Rng, amp: f64, around: Option<usize>) {
+    let cell = sys.cell;
+    let bmax = sys.shapes.iter().map(|s| s.bound).fold(0.0, f64::max);
+    let centre = around.map(|i| sys.grains[i].pos);
+    for i in 0..sys.grains.len() {
+        if sys.grains[i].frozen {
+            continue;
+        }
+        if let Some(c) = centre {
+            let mut d = sys.grains[i].pos - c;
+            for a in 0..3 {
+                d[a] -= cell[a] * (d[a] / cell[a]).round();
+            }
+            if d.norm() > SHAKE_REACH * bmax {
+                continue;
+            }
+        }
+        let b = sys.shapes[sys.grains[i].shape].bound;
+        let dx = random_in_ball(rng) * (amp * b);
+        let dth = random_in_ball(rng) * amp;
+        let g = &mut sys.grains[i];
+        g.pos += dx;
+        g.rot = UnitQuaternion::from_scaled_axis(dth) * g.rot;
+    }
+    sys.invalidate();
+}
+
+/// Moves grain `i` to the least overlapping of `PLACE_ATTEMPTS` random spots (and
+/// orientations) in its layer (stacked) or the cell (classic) at scale `s`.
+fn relocate(sys: &mut System, mode: &Mode, s: f64, i: usize, rng: &mut ChaCha8Rng) {
+    let cell = sys.cell;
+    let n = sys.grains.len();
+    let (zlo, zhi) = match mode {
+        Mode::Isotropic { .. } => (0.0, cell[2]),
+        Mode::Stacked { z0, thickness, .. } => (*z0, z0 + s * thickness),
+    };
+    place_among(sys, i, 0..n, rng, PLACE_ATTEMPTS, |r| {
+        Vector3::new(
+            uniform(r, 0.0, cell[0]),
+            uniform(r, 0.0, cell[1]),
+            uniform(r, zlo, zhi),
+        )
+    });
+    sys.invalidate();
+}
+
+fn random_in_ball(rng: &mut ChaCha8Rng) -> Vector3<f64> {
+    loop {
+        let v = Vector3::from([0; 3].map(|_| uniform(rng, -1.0, 1.0)));
+        if v.norm_squared() <= 1.0 {
+            return v;
+        }
+    }
+}
+
+/// Why a contraction run ended without reaching scale 1.
+pub struct RunFailure {
+    pub stats: RunStats,
+    pub reason: String,
+    /// Set when the run was cancelled (the error to pass on as is).
+    pub cancelled: Option<grainpipe_core::StageError>,
+}
+
 /// Alternates contraction and overlap removal from scale `beta` down to 1 (Algorithm 2,
 /// lines 10-17). A contraction whose overlap removal does not converge within
-/// `step_iterations` is undone and retried with half the rate. Err = (stats, reason).
+/// `step_iterations` (or stalls earlier, see `System::minimise`) is undone, and the rate is
+/// halved. A stuck contraction means a jammed arrangement, usually one grain wedged between
+/// its neighbours (or against its layer's soft box) that smaller steps alone cannot free:
+/// the cell is re-expanded by `SHAKE_EXPANSION`, the mobile grains around the one with the
+/// largest violation are shaken (random displacement and rotation of `SHAKE_AMPLITUDE`), it is
+/// moved to the least overlapping of `PLACE_ATTEMPTS` random spots, and the overlaps are
+/// removed before contraction resumes. Reaching `max_iterations` or a rate below `rate_min`
+/// fails.
 pub fn contract(
     sys: &mut System,
     mode: &Mode,
     beta: f64,
     sch: &Schedule,
+    rng: &mut ChaCha8Rng,
     mut progress: impl FnMut(f64) -> Result<(), grainpipe_core::StageError>,
-) -> Result<RunStats, (RunStats, String, Option<grainpipe_core::StageError>)> {
+) -> Result<RunStats, Box<RunFailure>> {
     let mut st = RunStats::default();
+    let fail = |stats: RunStats, reason: String| {
+        Box::new(RunFailure {
+            stats,
+            reason,
+            cancelled: None,
+        })
+    };
+    let limit = |s: f64| {
+        format!(
+            "iteration limit {} reached at contraction scale {s:.5} (target 1)",
+            sch.max_iterations
+        )
+    };
     let mut s = beta;
     apply(sys, mode, s, s);
     // Initial overlap removal at the dilute fraction.
     let m = sys.minimise(sch.max_iterations);
-    st.iterations += m.iterations;
-    st.energy = m.energy;
-    st.max_delta = m.max_delta;
+    st.record(
+        s,
+        &m,
+        if m.converged {
+            Outcome::Converged
+        } else {
+            Outcome::Stuck
+        },
+    );
     if !m.converged {
-        return Err((st, "initial overlap removal did not converge".into(), None));
+        return Err(fail(st, "initial overlap removal did not converge".into()));
     }
     let mut rate = sch.rate0;
     while s > 1.0 {
         if let Err(e) = progress((beta - s) / (beta - 1.0).max(1e-12)) {
-            return Err((st, "cancelled".into(), Some(e)));
+            return Err(Box::new(RunFailure {
+                stats: st,
+                reason: "cancelled".into(),
+                cancelled: Some(e),
+            }));
         }
+        let budget = |st: &RunStats| {
+            sch.step_iterations
+                .min(sch.max_iterations.saturating_sub(st.iterations))
+        };
         let snapshot: Vec<Grain> = sys.grains.clone();
         let cell = sys.cell;
         let s_new = (s / (1.0 + rate)).max(1.0);
         apply(sys, mode, s, s_new);
-        let budget = sch
-            .step_iterations
-            .min(sch.max_iterations.saturating_sub(st.iterations));
-        let m = sys.minimise(budget);
-        st.iterations += m.iterations;
-        st.energy = m.energy;
-        st.max_delta = m.max_delta;
+        let m = sys.minimise(budget(&st));
         if m.converged {
+            st.record(s_new, &m, Outcome::Converged);
             s = s_new;
             st.steps += 1;
             rate = (rate * 1.25).min(sch.rate_max);
             continue;
         }
+        st.record(s_new, &m, Outcome::Stuck);
         if st.iterations >= sch.max_iterations {
-            return Err((
-                st,
-                format!(
-                    "iteration limit {} reached at contraction scale {:.5} (target 1)",
-                    sch.max_iterations, s_new
-                ),
-                None,
-            ));
+            return Err(fail(st, limit(s_new)));
         }
-        // Stuck: undo the contraction and try a smaller one.
-        sys.grains = snapshot;
+        let stuck_grain = match m.worst {
+            Worst::Pair(i, _) | Worst::Box(i) => Some(i),
+            Worst::None => None,
+        };
+        // Undo the contraction, halve the rate, shake the jammed arrangement loose.
+        sys.grains = snapshot.clone();
         sys.cell = cell;
         sys.invalidate();
         st.backoffs += 1;
         rate *= 0.5;
         if rate < sch.rate_min {
-            return Err((
+            return Err(fail(
                 st,
                 format!(
-                    "contraction rate fell below {:e} at scale {:.5}: the packing is jammed",
-                    sch.rate_min, s
+                    "contraction rate fell below {:e} at scale {s:.5}: the packing is jammed",
+                    sch.rate_min
                 ),
-                None,
             ));
+        }
+        let s_up = (s * (1.0 + SHAKE_EXPANSION)).min(beta);
+        apply(sys, mode, s, s_up);
+        shake(sys, rng, SHAKE_AMPLITUDE, stuck_grain);
+        if let Some(i) = stuck_grain {
+            relocate(sys, mode, s_up, i, rng);
+        }
+        let m = sys.minimise(budget(&st));
+        st.shakes += 1;
+        if m.converged {
+            st.record(s_up, &m, Outcome::Shaken);
+            s = s_up;
+            rate = rate.max(0.5 * SHAKE_EXPANSION);
+        } else {
+            st.record(s_up, &m, Outcome::ShakeFailed);
+            sys.grains = snapshot;
+            sys.cell = cell;
+            sys.invalidate();
+            if st.iterations >= sch.max_iterations {
+                return Err(fail(st, limit(s)));
+            }
         }
     }
     Ok(st)

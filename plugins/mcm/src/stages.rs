@@ -1,8 +1,9 @@
 //! The stages `mcm.classic` and `mcm.stacked`.
 
-use crate::engine::{Grain, Shape, System};
+use crate::engine::{EnergyKind, Grain, Minimiser, Relaxation, Shape, System};
 use crate::pack::{
-    contract, place, random_rotation, scale_clump, uniform, v3, Mode, Pick, Schedule, Source,
+    contract, place, random_rotation, uniform, v3, Mode, Pick, RunFailure, RunStats, Schedule,
+    Source, PLACE_ATTEMPTS,
 };
 use grainpipe_core::distributions::SizeDistribution;
 use grainpipe_core::units::{Length, Q};
@@ -13,9 +14,6 @@ use grainpipe_core::{
 };
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
-
-/// Random initial positions tried per grain before the least overlapping one is kept.
-const PLACE_ATTEMPTS: usize = 200;
 
 /// `mcm.classic`: Williams and Philipse's MCM for clumps (Schneider et al. 2018).
 pub struct Classic;
@@ -35,6 +33,9 @@ pub struct ClassicParams {
     pub tolerance: f64,
     pub step_iterations: usize,
     pub max_iterations: usize,
+    pub energy: EnergyKind,
+    pub minimiser: Minimiser,
+    pub step_sizes: [f64; 2],
 }
 
 impl Default for ClassicParams {
@@ -50,10 +51,13 @@ impl Default for ClassicParams {
             beta: 2.0,
             contraction_steps: 30,
             min_gap: Q::new(0.0),
-            tolerance: 1e-4,
+            tolerance: 1e-2,
             step_iterations: 3000,
             // Paper, section 3.5: maximal iteration count 30 000.
             max_iterations: 30_000,
+            energy: Relaxation::default().energy,
+            minimiser: Relaxation::default().minimiser,
+            step_sizes: Relaxation::default().step_sizes,
         }
     }
 }
@@ -72,6 +76,9 @@ pub struct StackedParams {
     pub tolerance: f64,
     pub step_iterations: usize,
     pub max_iterations: usize,
+    pub energy: EnergyKind,
+    pub minimiser: Minimiser,
+    pub step_sizes: [f64; 2],
     pub periodic_z: bool,
 }
 
@@ -89,12 +96,48 @@ impl Default for StackedParams {
             beta: 3.0,
             contraction_steps: 30,
             min_gap: Q::new(8e-6),
-            tolerance: 1e-4,
+            tolerance: 1e-2,
             step_iterations: 3000,
             max_iterations: 30_000,
+            energy: Relaxation::default().energy,
+            minimiser: Relaxation::default().minimiser,
+            step_sizes: Relaxation::default().step_sizes,
             periodic_z: true,
         }
     }
+}
+
+/// The parameters both stages share, borrowed from either.
+struct Common<'a> {
+    radius: &'a SizeDistribution,
+    volume_fraction: f64,
+    beta: f64,
+    contraction_steps: usize,
+    min_gap: f64,
+    tolerance: f64,
+    step_iterations: usize,
+    max_iterations: usize,
+    relaxation: Relaxation,
+}
+
+macro_rules! common_of {
+    ($p:expr) => {
+        Common {
+            radius: &$p.radius,
+            volume_fraction: $p.volume_fraction,
+            beta: $p.beta,
+            contraction_steps: $p.contraction_steps,
+            min_gap: $p.min_gap.si(),
+            tolerance: $p.tolerance,
+            step_iterations: $p.step_iterations,
+            max_iterations: $p.max_iterations,
+            relaxation: Relaxation {
+                energy: $p.energy,
+                minimiser: $p.minimiser,
+                step_sizes: $p.step_sizes,
+            },
+        }
+    };
 }
 
 fn common_params() -> Vec<ParamSpec> {
@@ -104,74 +147,76 @@ fn common_params() -> Vec<ParamSpec> {
         ParamSpec { name: "contraction_steps", ty: "usize", unit: "1", doc: "initial schedule: beta is reached in this many equal geometric steps; the rate then adapts (x1.25 after success, /2 and retry when stuck)" },
         ParamSpec { name: "min_gap", ty: "Q<Length>", unit: "m", doc: "minimum distance between two grains (Remark 5)" },
         ParamSpec { name: "tolerance", ty: "f64", unit: "1", doc: "overlap tolerance relative to the mean bounding radius; the gap is padded by it so the final gap is at least min_gap" },
-        ParamSpec { name: "step_iterations", ty: "usize", unit: "1", doc: "FIRE iterations allowed per contraction step before the step is undone and halved" },
-        ParamSpec { name: "max_iterations", ty: "usize", unit: "1", doc: "FIRE iteration limit (per layer for mcm.stacked); reaching it fails the stage" },
+        ParamSpec { name: "step_iterations", ty: "usize", unit: "1", doc: "minimiser iterations allowed per contraction step before it is undone, the rate halved and the jam shaken loose" },
+        ParamSpec { name: "max_iterations", ty: "usize", unit: "1", doc: "minimiser iteration limit (per layer for mcm.stacked); reaching it fails the stage" },
+        ParamSpec { name: "energy", ty: "all_pairs | max_pair", unit: "", doc: "overlap energy minimised: all_pairs (default) sums 1/2 delta^2 over every overlapping sphere pair (smooth); max_pair is eq. (2.4)-(2.6) as written, only the deepest sphere pair of each grain pair. Both are zero exactly when nothing overlaps" },
+        ParamSpec { name: "minimiser", ty: "fire | gradient_descent", unit: "", doc: "fire (default, Bitzek et al. 2006) or the paper's fixed-step gradient descent, eq. (2.8)" },
+        ParamSpec { name: "step_sizes", ty: "[f64; 2]", unit: "1", doc: "gradient_descent only: h_c and h_R of eq. (2.8) (paper: 0.1, 0.4); rotation steps in units of the grain's bounding radius" },
     ]
 }
 
 fn outputs() -> Vec<PortSpec> {
     vec![
         PortSpec::new("packing", ArtifactKind::Packing, "periodic packing with layer ids (library embedded for clumps)"),
-        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, iterations, contraction steps, back-offs, time, final overlap energy, achieved fraction"),
+        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, iterations, contraction steps, back-offs, shakes, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction"),
+        PortSpec::new("history", ArtifactKind::Table, "convergence history: per layer and overlap-removal phase, the contraction scale, iterations, overlap energy, largest violation and outcome (converged, stuck, shaken, shake_failed)"),
         PortSpec::new("orientation", ArtifactKind::Tensor, "3x3 orientation tensor <n n> of the grains' long axes (smallest principal moment of inertia); 1/3 I for spheres"),
     ]
 }
 
-#[allow(clippy::too_many_arguments)]
-fn check_common(
-    vf: f64,
-    beta: f64,
-    steps: usize,
-    gap: f64,
-    tol: f64,
-    step_it: usize,
-    max_it: usize,
-    radius: &SizeDistribution,
-) -> Result<(), StageError> {
+fn check_common(c: &Common) -> Result<(), StageError> {
+    let vf = c.volume_fraction;
     if !(vf > 0.0 && vf < 0.74) {
         return Err(StageError::param("volume_fraction", format!("must be in (0, 0.74) (denser than close packing of spheres is impossible), got {vf}")));
     }
-    if !(beta.is_finite() && beta > 1.0) {
+    if !(c.beta.is_finite() && c.beta > 1.0) {
         return Err(StageError::param(
             "beta",
-            format!("enlargement factor must be > 1 (eq. 2.2), got {beta}"),
+            format!("enlargement factor must be > 1 (eq. 2.2), got {}", c.beta),
         ));
     }
-    if steps == 0 {
+    if c.contraction_steps == 0 {
         return Err(StageError::param("contraction_steps", "must be at least 1"));
     }
-    if !(gap.is_finite() && gap >= 0.0) {
+    if !(c.min_gap.is_finite() && c.min_gap >= 0.0) {
         return Err(StageError::param(
             "min_gap",
-            format!("must be >= 0, got {gap}"),
+            format!("must be >= 0, got {}", c.min_gap),
         ));
     }
-    if !(tol > 0.0 && tol < 0.1) {
+    if !(c.tolerance > 0.0 && c.tolerance < 0.1) {
         return Err(StageError::param(
             "tolerance",
-            format!("must be in (0, 0.1), got {tol}"),
+            format!("must be in (0, 0.1), got {}", c.tolerance),
         ));
     }
-    if step_it == 0 || max_it == 0 {
+    if c.step_iterations == 0 || c.max_iterations == 0 {
         return Err(StageError::param(
             "max_iterations",
             "iteration limits must be at least 1",
         ));
     }
-    radius
+    let [h_c, h_r] = c.relaxation.step_sizes;
+    if !(h_c > 0.0 && h_c <= 1.0 && h_r > 0.0 && h_r <= 1.0) {
+        return Err(StageError::param(
+            "step_sizes",
+            format!("h_c and h_R must be in (0, 1] (larger steps overshoot), got [{h_c}, {h_r}]"),
+        ));
+    }
+    c.radius
         .validate()
         .map_err(|(k, m)| StageError::param(&format!("radius.{k}"), m))?;
     Ok(())
 }
 
-fn schedule(beta: f64, steps: usize, step_it: usize, max_it: usize) -> Schedule {
-    let rate0 = beta.powf(1.0 / steps as f64) - 1.0;
+fn schedule(c: &Common) -> Schedule {
+    let rate0 = c.beta.powf(1.0 / c.contraction_steps as f64) - 1.0;
     Schedule {
         rate0,
         rate_min: 1e-5,
         rate_max: rate0.max(0.01) * 2.0,
-        step_iterations: step_it,
-        max_iterations: max_it,
+        step_iterations: c.step_iterations,
+        max_iterations: c.max_iterations,
     }
 }
 
@@ -209,7 +254,7 @@ fn build(sys: &System, src: &Source, picks: &[(Pick, f64, u32)], cell: [f64; 3])
         let orientation = [q.w, q.i, q.j, q.k];
         let shape = match (src, p.index) {
             (Source::Library(l), Some(i)) => {
-                let c = scale_clump(&l.clumps[i], *s);
+                let c = l.clumps[i].scaled(*s);
                 let k = c
                     .principal_inertia
                     .iter()
@@ -272,44 +317,94 @@ fn orientation_tensor(axes: &[[f64; 3]]) -> Tensor {
 
 struct Row {
     grains: usize,
-    iterations: usize,
-    steps: usize,
-    backoffs: usize,
+    stats: RunStats,
     time: f64,
-    energy: f64,
     fraction: f64,
 }
 
 fn report(rows: &[Row]) -> Table {
+    let ints = |f: fn(&Row) -> usize| rows.iter().map(|r| f(r) as i64).collect();
     Table::new("mcm")
         .with_i64("layer", "1", (0..rows.len() as i64).collect())
-        .with_i64(
-            "grains",
-            "1",
-            rows.iter().map(|r| r.grains as i64).collect(),
-        )
-        .with_i64(
-            "iterations",
-            "1",
-            rows.iter().map(|r| r.iterations as i64).collect(),
-        )
-        .with_i64(
-            "contraction_steps",
-            "1",
-            rows.iter().map(|r| r.steps as i64).collect(),
-        )
-        .with_i64(
-            "backoffs",
-            "1",
-            rows.iter().map(|r| r.backoffs as i64).collect(),
-        )
+        .with_i64("grains", "1", ints(|r| r.grains))
+        .with_i64("iterations", "1", ints(|r| r.stats.iterations))
+        .with_i64("contraction_steps", "1", ints(|r| r.stats.steps))
+        .with_i64("backoffs", "1", ints(|r| r.stats.backoffs))
+        .with_i64("shakes", "1", ints(|r| r.stats.shakes))
         .with_f64("time", "s", rows.iter().map(|r| r.time).collect())
         .with_f64(
             "overlap_energy",
             "m^2",
-            rows.iter().map(|r| r.energy).collect(),
+            rows.iter().map(|r| r.stats.energy).collect(),
+        )
+        .with_f64(
+            "max_violation",
+            "m",
+            rows.iter().map(|r| r.stats.max_delta).collect(),
         )
         .with_f64("fraction", "1", rows.iter().map(|r| r.fraction).collect())
+}
+
+/// Convergence history: one row per overlap-removal phase of every layer.
+fn history(rows: &[Row]) -> Table {
+    let phases: Vec<(usize, &crate::pack::Phase)> = rows
+        .iter()
+        .enumerate()
+        .flat_map(|(l, r)| r.stats.history.iter().map(move |h| (l, h)))
+        .collect();
+    Table::new("mcm_history")
+        .with_i64("layer", "1", phases.iter().map(|p| p.0 as i64).collect())
+        .with_f64("scale", "1", phases.iter().map(|p| p.1.scale).collect())
+        .with_i64(
+            "iterations",
+            "1",
+            phases.iter().map(|p| p.1.iterations as i64).collect(),
+        )
+        .with_f64(
+            "overlap_energy",
+            "m^2",
+            phases.iter().map(|p| p.1.energy).collect(),
+        )
+        .with_f64(
+            "max_violation",
+            "m",
+            phases.iter().map(|p| p.1.max_violation).collect(),
+        )
+        .with_str(
+            "outcome",
+            phases
+                .iter()
+                .map(|p| p.1.outcome.name().to_string())
+                .collect(),
+        )
+}
+
+/// The stage error for a contraction run that did not reach the final size.
+fn run_failed(stage: &str, layer: usize, layers: usize, f: RunFailure) -> StageError {
+    let RunFailure {
+        stats: st,
+        reason,
+        cancelled,
+    } = f;
+    if let Some(e) = cancelled {
+        return e;
+    }
+    StageError::failed(format!(
+        "{stage}, layer {layer} of {layers}: {}; overlap energy reached {:.3e} m^2, largest violation {:.3e} m ({}), after {} iterations, {} contraction steps, {} back-offs, {} shakes. Lower volume_fraction or min_gap, or raise max_iterations",
+        reason, st.energy, st.max_delta, st.worst, st.iterations, st.steps, st.backoffs, st.shakes
+    ))
+}
+
+fn outputs_of(rows: &[Row], packing: Packing, axes: &[[f64; 3]]) -> Outputs {
+    let mut out = Outputs::new();
+    out.insert("packing".into(), Artifact::Packing(packing));
+    out.insert("report".into(), Artifact::Table(report(rows)));
+    out.insert("history".into(), Artifact::Table(history(rows)));
+    out.insert(
+        "orientation".into(),
+        Artifact::Tensor(orientation_tensor(axes)),
+    );
+    out
 }
 
 fn library_input(inputs: &Inputs) -> Result<Option<&ClumpLibrary>, StageError> {
@@ -321,6 +416,22 @@ fn library_input(inputs: &Inputs) -> Result<Option<&ClumpLibrary>, StageError> {
         return Err(StageError::input("library", "the clump library is empty"));
     }
     Ok(Some(lib))
+}
+
+/// A grain wider than the periodic cell would overlap its own image.
+fn check_fits(key: &str, width: f64, shapes: &[Shape]) -> Result<(), StageError> {
+    let widest = 2.0 * shapes.iter().map(|s| s.bound).fold(0.0, f64::max);
+    if width < widest {
+        return Err(StageError::param(
+            key,
+            format!(
+                "a drawn grain's bounding diameter ({:.1} um) exceeds the cell width ({:.1} um): it would overlap its own periodic image; enlarge the cell or cap the library (clumps.library max_bounding_diameter)",
+                widest * 1e6,
+                width * 1e6
+            ),
+        ));
+    }
+    Ok(())
 }
 
 fn mean_bound(shapes: &[Shape]) -> f64 {
@@ -338,24 +449,15 @@ impl TypedStage for Classic {
         ]);
         StageInfo {
             id: "mcm.classic",
-            version: "1",
-            doc: "Mechanical contraction method: grains placed in a cell enlarged by beta, isotropic contraction steps each followed by overlap removal (FIRE on eq. 2.6 over centroids and orientations), periodic in x, y, z",
+            version: "2.0.0",
+            doc: "Mechanical contraction method: grains placed in a cell enlarged by beta, isotropic contraction steps each followed by overlap removal (FIRE or the paper's gradient descent over centroids and orientations), jams shaken loose, periodic in x, y, z",
             params,
             inputs: vec![PortSpec::optional("library", ArtifactKind::ClumpLibrary, "clumps to pack (drawn by scrambled Sobol sampling on bounding diameter); spheres from `radius` if absent")],
             outputs: outputs(),
         }
     }
     fn preflight(&self, p: &Self::Params, _: &InputMetas) -> Result<Preflight, StageError> {
-        check_common(
-            p.volume_fraction,
-            p.beta,
-            p.contraction_steps,
-            p.min_gap.si(),
-            p.tolerance,
-            p.step_iterations,
-            p.max_iterations,
-            &p.radius,
-        )?;
+        check_common(&common_of!(p))?;
         let sized = p.size.iter().all(|l| l.si() > 0.0);
         if !sized && p.size.iter().any(|l| l.si() != 0.0) {
             return Err(StageError::param(
@@ -409,15 +511,11 @@ impl TypedStage for Classic {
         let mut rng = ctx.rng();
         let shapes: Vec<Shape> = picks.iter().map(|x| src.shape(x, scale)).collect();
         let bmean = mean_bound(&shapes);
-        if cell
-            .iter()
-            .any(|&l| l < 2.0 * shapes.iter().map(|s| s.bound).fold(0.0, f64::max))
-        {
-            return Err(StageError::param(
-                "size",
-                "the cell must be at least two largest grain diameters wide",
-            ));
-        }
+        check_fits(
+            "size",
+            cell.iter().cloned().fold(f64::INFINITY, f64::min),
+            &shapes,
+        )?;
         let tol = p.tolerance * bmean;
         let grains: Vec<Grain> = (0..picks.len())
             .map(|i| Grain {
@@ -431,25 +529,19 @@ impl TypedStage for Classic {
         // eq. (2.2): the grains are placed in the cell enlarged by beta.
         let big = cell.map(|l| l * p.beta);
         let mut sys = System::new(shapes, grains, big, p.min_gap.si() + tol, tol);
+        sys.margin = tol;
+        sys.relaxation = common_of!(p).relaxation;
         for i in 0..sys.grains.len() {
             place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, |r| {
                 v3([0, 1, 2].map(|a| uniform(r, 0.0, big[a])))
             });
         }
         let mode = Mode::Isotropic { final_cell: cell };
-        let sch = schedule(
-            p.beta,
-            p.contraction_steps,
-            p.step_iterations,
-            p.max_iterations,
-        );
-        let st = contract(&mut sys, &mode, p.beta, &sch, |f| ctx.progress((f * 1000.0) as u64, 1000))
-            .map_err(|(st, why, e)| {
-                e.unwrap_or_else(|| StageError::failed(format!(
-                    "mcm.classic, layer 0: {why}; overlap energy reached {:.3e} m^2 (largest overlap {:.3e} m) after {} iterations, {} contraction steps, {} back-offs",
-                    st.energy, st.max_delta, st.iterations, st.steps, st.backoffs
-                )))
-            })?;
+        let sch = schedule(&common_of!(p));
+        let st = contract(&mut sys, &mode, p.beta, &sch, &mut rng, |f| {
+            ctx.progress((f * 1000.0) as u64, 1000)
+        })
+        .map_err(|f| run_failed("mcm.classic", 0, 1, *f))?;
         let tagged: Vec<(Pick, f64, u32)> = picks.iter().map(|x| (*x, scale, 0)).collect();
         let built = build(&sys, &src, &tagged, cell);
         let mut packing = Packing::new(Domain::boxed([0.0; 3], cell, [true; 3]));
@@ -458,21 +550,11 @@ impl TypedStage for Classic {
         let fraction = packing.volume_fraction();
         let rows = [Row {
             grains: picks.len(),
-            iterations: st.iterations,
-            steps: st.steps,
-            backoffs: st.backoffs,
+            stats: st,
             time: t0.elapsed().as_secs_f64(),
-            energy: st.energy,
             fraction,
         }];
-        let mut out = Outputs::new();
-        out.insert("packing".into(), Artifact::Packing(packing));
-        out.insert("report".into(), Artifact::Table(report(&rows)));
-        out.insert(
-            "orientation".into(),
-            Artifact::Tensor(orientation_tensor(&built.axes)),
-        );
-        Ok(out)
+        Ok(outputs_of(&rows, packing, &built.axes))
     }
 }
 
@@ -509,29 +591,20 @@ impl TypedStage for Stacked {
                 name: "periodic_z",
                 ty: "bool",
                 unit: "",
-                doc: "true (paper, Remark 4): periodic in z too, the layer being packed also meets the image of layer 0 above it; false: free surface above each new layer (as when printing), packing periodic in x, y only, far fewer jams (docs/bench/mcm.md)",
+                doc: "true (paper, Remark 4): periodic in z too, the layer being packed also meets the image of layer 0 above it; false: free surface above each new layer (as when printing), packing periodic in x, y only (fewer jams, faster; BENCHMARKS.md#mcm)",
             },
         ]);
         StageInfo {
             id: "mcm.stacked",
-            version: "1",
-            doc: "Stacked mechanical contraction method (Algorithm 2): layer by layer, x-y periodic, contraction along z only, earlier layers frozen, soft box on the centroids, each layer filled to eta exactly",
+            version: "2.0.0",
+            doc: "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen, soft box on the centroids, each layer filled to eta exactly, jams shaken loose",
             params,
             inputs: vec![PortSpec::optional("library", ArtifactKind::ClumpLibrary, "clumps to pack (scrambled Sobol sampling on bounding diameter, Remark 2); spheres from `radius` if absent")],
             outputs: outputs(),
         }
     }
     fn preflight(&self, p: &Self::Params, _: &InputMetas) -> Result<Preflight, StageError> {
-        check_common(
-            p.volume_fraction,
-            p.beta,
-            p.contraction_steps,
-            p.min_gap.si(),
-            p.tolerance,
-            p.step_iterations,
-            p.max_iterations,
-            &p.radius,
-        )?;
+        check_common(&common_of!(p))?;
         if !(1..=1000).contains(&p.layers) {
             return Err(StageError::param(
                 "layers",
@@ -568,14 +641,10 @@ impl TypedStage for Stacked {
         );
         let mut rng = ctx.rng();
         let mut sys = System::new(Vec::new(), Vec::new(), [lx, ly, t], 0.0, 0.0);
+        sys.relaxation = common_of!(p).relaxation;
         let mut tagged: Vec<(Pick, f64, u32)> = Vec::new();
         let mut rows = Vec::new();
-        let sch = schedule(
-            p.beta,
-            p.contraction_steps,
-            p.step_iterations,
-            p.max_iterations,
-        );
+        let sch = schedule(&common_of!(p));
         for layer in 0..p.layers {
             let t0 = Instant::now();
             let seed =
@@ -597,6 +666,7 @@ impl TypedStage for Stacked {
             };
             let tol = p.tolerance * bmean;
             sys.tol = tol;
+            sys.margin = tol;
             sys.gap = p.min_gap.si() + tol;
             sys.cell[2] = crate::pack::stacked_cell_z(z0 + p.beta * t, t, p.periodic_z);
             for pk in &picks {
@@ -618,12 +688,7 @@ impl TypedStage for Stacked {
                 });
                 tagged.push((*pk, s, layer as u32));
             }
-            if lx.min(ly) < 2.0 * sys.shapes.iter().map(|x| x.bound).fold(0.0, f64::max) {
-                return Err(StageError::param(
-                    "layer_size",
-                    "the layer must be at least two largest grain diameters wide",
-                ));
-            }
+            check_fits("layer_size", lx.min(ly), &sys.shapes)?;
             let mode = Mode::Stacked {
                 first,
                 z0,
@@ -632,23 +697,15 @@ impl TypedStage for Stacked {
                 periodic_z: p.periodic_z,
             };
             let nl = p.layers as f64;
-            let st = contract(&mut sys, &mode, p.beta, &sch, |f| {
+            let st = contract(&mut sys, &mode, p.beta, &sch, &mut rng, |f| {
                 ctx.progress(((layer as f64 + f) / nl * 1000.0) as u64, 1000)
             })
-            .map_err(|(st, why, e)| {
-                e.unwrap_or_else(|| StageError::failed(format!(
-                    "mcm.stacked, layer {layer} of {}: {why}; overlap energy reached {:.3e} m^2 (largest violation {:.3e} m) after {} iterations, {} contraction steps, {} back-offs",
-                    p.layers, st.energy, st.max_delta, st.iterations, st.steps, st.backoffs
-                )))
-            })?;
+            .map_err(|f| run_failed("mcm.stacked", layer, p.layers, *f))?;
             let vol: f64 = picks.iter().map(|x| x.volume * s.powi(3)).sum();
             rows.push(Row {
                 grains: picks.len(),
-                iterations: st.iterations,
-                steps: st.steps,
-                backoffs: st.backoffs,
+                stats: st,
                 time: t0.elapsed().as_secs_f64(),
-                energy: st.energy,
                 fraction: vol / (lx * ly * t),
             });
         }
@@ -657,13 +714,6 @@ impl TypedStage for Stacked {
         let mut packing = Packing::new(Domain::boxed([0.0; 3], cell, [true, true, p.periodic_z]));
         packing.bodies = built.bodies;
         packing.library = built.library;
-        let mut out = Outputs::new();
-        out.insert("packing".into(), Artifact::Packing(packing));
-        out.insert("report".into(), Artifact::Table(report(&rows)));
-        out.insert(
-            "orientation".into(),
-            Artifact::Tensor(orientation_tensor(&built.axes)),
-        );
-        Ok(out)
+        Ok(outputs_of(&rows, packing, &built.axes))
     }
 }

@@ -1,4 +1,8 @@
-//! pipelines/mcm.yaml through the engine with a registry holding this crate and the formats.
+//! pipelines/mcm.yaml through the engine with a registry holding this crate, the clump
+//! stages and the formats: the paper's stacked setting with real sand clumps, checked
+//! independently.
+
+mod common;
 
 use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
 use grainpipe_core::pipeline::PipelineDoc;
@@ -8,6 +12,7 @@ use std::path::Path;
 fn registry() -> Registry {
     let mut r = Registry::new();
     grainpipe_formats::register(&mut r);
+    grainpipe_clumps::register(&mut r);
     grainpipe_mcm::register(&mut r);
     r
 }
@@ -37,9 +42,46 @@ fn mcm_pipeline_runs_and_exports() {
     // 300 equal spheres in a cube sized for 60 %: exact up to rounding.
     assert!((classic.volume_fraction() - 0.6).abs() < 1e-9);
     let stacked = res.outputs["stacked"]["packing"].as_packing().unwrap();
-    // Two layers of (560 um)^2 x 280 um at 50 %.
+    // Two layers of (560 um)^2 x 280 um at 50 % (Remark 1: exact up to rounding).
     let v = 0.5 * 560e-6 * 560e-6 * 560e-6;
     assert!((stacked.solid_volume() / v - 1.0).abs() < 1e-9);
+    assert_eq!(stacked.domain.periodic, [true; 3]);
+    let lib = stacked.library.as_ref().unwrap();
+    let spheres = lib.clumps.iter().map(|c| c.spheres.len()).sum::<usize>() / lib.clumps.len();
+    assert!(
+        (150..=200).contains(&spheres),
+        "{spheres} spheres per clump, the paper's grains have 150-200"
+    );
+    // Remark 5 and Remark 4: the 8 um gap holds across the periodic images in x, y and z.
+    let gap = common::min_surface_gap_culled(stacked);
+    assert!(
+        gap >= 8e-6 - 1e-12,
+        "closest grains {gap} m apart, min_gap 8 um"
+    );
+    // Every centroid in its layer.
+    for b in &stacked.bodies {
+        let z = b.position[2];
+        let lo = b.layer as f64 * 280e-6;
+        assert!(
+            z >= lo - 1e-12 && z <= lo + 280e-6 + 1e-12,
+            "layer {} centroid z = {z}",
+            b.layer
+        );
+    }
+    // The convergence history ends with a converged phase at the final size in each layer.
+    let hist = res.outputs["stacked"]["history"].as_table().unwrap();
+    let (
+        Some(grainpipe_core::ColumnData::F64(scale)),
+        Some(grainpipe_core::ColumnData::Str(outcome)),
+    ) = (
+        hist.column("scale").map(|c| &c.data),
+        hist.column("outcome").map(|c| &c.data),
+    )
+    else {
+        panic!("history columns")
+    };
+    assert_eq!(scale.last(), Some(&1.0));
+    assert_eq!(outcome.last().map(String::as_str), Some("converged"));
     for f in [
         "classic.vtp",
         "classic.h5",
@@ -48,6 +90,8 @@ fn mcm_pipeline_runs_and_exports() {
         "stacked.vtp",
         "stacked.h5",
         "stacked_report.csv",
+        "stacked_history.csv",
+        "stacked_orientation.csv",
     ] {
         let path = out.path().join("mcm").join(f);
         assert!(

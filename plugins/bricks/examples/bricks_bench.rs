@@ -1,7 +1,7 @@
 //! Runs every example of the sphere-filling paper and prints a Markdown table side by side
 //! with the paper's Tables 1-3 (Matlab 2021a, 2 Xeon workstation).
 //!
-//! `CARGO_TARGET_DIR=/work/target-bricks cargo run --release -p grainpipe-bricks --example bench`
+//! `cargo run --release -p grainpipe-bricks --example bricks_bench`
 //! Optional argument: number of rayon threads (default 2).
 
 use grainpipe_bricks::{Curved, CurvedParams, Method1, Method1Params, Method2, Method2Params};

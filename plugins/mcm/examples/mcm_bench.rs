@@ -1,13 +1,17 @@
 //! Benchmark of mcm.stacked against the paper's Tables 4-5 (Donval et al. 2025, section 3.5):
 //! layers of (L um)^2 x 280 um at 50 % with an 8 um gap, 30 000 iteration limit, several seeds.
 //!
-//! cargo run --release -p grainpipe-mcm --example bench -- [seeds] [grains]
-//!   grains = spheres (lognormal, median radius 70 um, D50 = 140 um) or sand (the 30 real
-//!   grains of data/sand-grains as clumps at alpha = 0.9, built by pipelines/clumps.yaml).
-//! Env MCM_CASES="layers:size_um,..." overrides the cases (default Table 4 and Table 5);
-//! MCM_PHI (0.5), MCM_GAP (8e-6 m), MCM_TOL (1e-3), MCM_STEP (3000) override the fraction,
-//! gap, tolerance and iterations per contraction step; MCM_PERIODIC_Z=0 gives a free surface
-//! above each new layer.
+//! cargo run --release -p grainpipe-mcm --example mcm_bench -- [seeds, 30] [grains, sand]
+//!   grains = sand (the real grains of data/sand-grains as clumps at alpha = MCM_ALPHA,
+//!   default 0.99: 186 spheres per clump, the paper's 150-200; bounding diameter capped at
+//!   the 280 um layer thickness as in the paper; built by pipelines/clumps.yaml) or spheres
+//!   (lognormal, median radius 70 um, D50 = 140 um, radii 40-120 um).
+//! Env MCM_CASES="layers:size_um,..." overrides the cases (default: Table 4, then Table 5);
+//! MCM_PHI (0.5), MCM_GAP (8e-6 m), MCM_TOL (1e-2), MCM_STEP (3000), MCM_STEPS (30),
+//! MCM_BETA (3) override the fraction, gap, tolerance, iterations per contraction step,
+//! contraction steps and beta; MCM_PERIODIC_Z=0 gives a free surface above each new layer;
+//! MCM_ENERGY (all_pairs | max_pair) and MCM_MINIMISER (fire | gradient_descent) pick the
+//! overlap energy and the minimiser; MCM_SEED0 is the first seed.
 
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{Artifact, ClumpLibrary, Inputs, RunContext, TypedStage};
@@ -22,6 +26,15 @@ fn sand_library() -> ClumpLibrary {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut doc = PipelineDoc::load(&root.join("pipelines/clumps.yaml")).unwrap();
     doc.exports.clear();
+    // The paper's clumps have 150-200 spheres (CT voxel masks at alpha = 0.9); our smooth
+    // harmonic grains reach that complexity at alpha = 0.99 (188 spheres on average).
+    let alpha = std::env::var("MCM_ALPHA").unwrap_or_else(|_| "0.99".into());
+    doc.apply_override(&format!("clumps.alpha={alpha}"))
+        .unwrap();
+    // Paper, section 3.5: the largest bounding diameter is the layer thickness, 280 um.
+    doc.apply_override("library.sampling=all").unwrap();
+    doc.apply_override("library.max_bounding_diameter=280 um")
+        .unwrap();
     std::env::set_current_dir(&root).unwrap();
     let mut r = grainpipe_core::Registry::new();
     grainpipe_clumps::register(&mut r);
@@ -33,8 +46,8 @@ fn sand_library() -> ClumpLibrary {
         &mut SilentObserver,
     )
     .unwrap();
-    // All 30 garcia clumps (not the 20-draw subsample): mcm.stacked draws by Sobol itself.
-    res.outputs["clumps"]["library"]
+    // All clumps up to 280 um (no subsample): mcm.stacked draws by Sobol itself.
+    res.outputs["library"]["library"]
         .as_clump_library()
         .unwrap()
         .clone()
@@ -47,10 +60,14 @@ fn env(key: &str, default: f64) -> f64 {
         .unwrap_or(default)
 }
 
+fn env_str(key: &str, default: &str) -> String {
+    std::env::var(key).unwrap_or_else(|_| default.into())
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let seeds: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(30);
-    let grains = args.get(2).cloned().unwrap_or_else(|| "spheres".into());
+    let grains = args.get(2).cloned().unwrap_or_else(|| "sand".into());
     let lib = (grains == "sand").then(sand_library);
     if let Some(l) = &lib {
         let n: usize = l.clumps.iter().map(|c| c.spheres.len()).sum();
@@ -61,7 +78,7 @@ fn main() {
         );
     }
     let cases: Vec<(usize, f64)> = std::env::var("MCM_CASES")
-        .unwrap_or_else(|_| "1:560,2:560,3:560,4:560,1:280,1:420,1:840,1:1120".into())
+        .unwrap_or_else(|_| "1:560,2:560,3:560,4:560,2:280,2:420,2:840,2:1120".into())
         .split(',')
         .map(|c| {
             let (l, s) = c.split_once(':').unwrap();
@@ -75,14 +92,19 @@ fn main() {
         let mut iters = Vec::new();
         let mut fails = 0;
         let mut grains_n = 0;
-        for seed in 0..seeds {
+        let seed0 = env("MCM_SEED0", 0.0) as u64;
+        for seed in seed0..seed0 + seeds {
             let p: StackedParams = serde_json::from_value(json!({
                 "layers": layers, "layer_size": [size * 1e-6, size * 1e-6],
                 "layer_thickness": 280e-6, "volume_fraction": env("MCM_PHI", 0.5), "min_gap": env("MCM_GAP", 8e-6),
                 "radius": {"kind": "lognormal", "median": "70 um", "sigma": 0.2, "min": "40 um", "max": "120 um"},
-                "tolerance": env("MCM_TOL", 1e-3),
+                "tolerance": env("MCM_TOL", 1e-2),
+                "contraction_steps": env("MCM_STEPS", 30.0) as usize,
+                "beta": env("MCM_BETA", 3.0),
                 "step_iterations": env("MCM_STEP", 3000.0) as usize,
                 "periodic_z": env("MCM_PERIODIC_Z", 1.0) != 0.0,
+                "energy": env_str("MCM_ENERGY", "all_pairs"),
+                "minimiser": env_str("MCM_MINIMISER", "fire"),
             }))
             .unwrap();
             let mut inputs = Inputs::new();

@@ -9,7 +9,7 @@
 //! are rejected, and filling stops after 30 consecutive rejections (later, only small
 //! spheres still fit and the size distribution drifts away from the Weibull law).
 //!
-//! cargo run --release -p grainpipe-sintering --example bench [-- --png out.png]
+//! cargo run --release -p grainpipe-sintering --example sintering_bench [-- --png out.png]
 
 use grainpipe_core::model::{Body, Contact, ContactGraph, Domain, Packing};
 use grainpipe_core::stage::SilentReporter;

@@ -1,6 +1,6 @@
-//! Benchmark of grainpipe-clumps (docs/bench/clumps.md).
+//! Benchmark of grainpipe-clumps (BENCHMARKS.md#grains-and-clumps).
 //!
-//! `cargo run --release -p grainpipe-clumps --example bench [-- quick]`
+//! `cargo run --release -p grainpipe-clumps --example clumps_bench [-- quick]`
 //!
 //! 1. Seconds per real CT grain (data/sand-grains rescaled to D50 = 140 um, 4 um voxels as
 //!    in the paper, and 2 um) at alpha = 0.9, one thread; spheres per grain.
