@@ -637,6 +637,18 @@ fn cache_store(dir: &Path, key: &str, outputs: &Outputs) -> Result<(), String> {
 
 /// Runs a checked plan: steps in order, cached results reused, exports written as soon as
 /// their producer has finished.
+/// Plans and runs `doc` without cache or progress output: the whole pipeline in one call,
+/// for tests, benchmarks and embedding.
+pub fn run_quietly(doc: &PipelineDoc, registry: &Registry) -> Result<RunResult, PipelineError> {
+    let p = plan(doc, registry, &PlanOptions::default())?;
+    execute(
+        doc,
+        &p,
+        &RunOptions { cache_dir: None },
+        &mut SilentObserver,
+    )
+}
+
 pub fn execute(
     doc: &PipelineDoc,
     plan: &Plan,

@@ -1,7 +1,7 @@
 //! Helpers for the workspace-level tests in `tests/tests/`: run a shipped pipeline with its
 //! outputs redirected to a temporary directory.
 
-use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, RunResult, SilentObserver};
+use grainpipe_core::engine::{run_quietly, RunResult};
 use grainpipe_core::pipeline::{PipelineDoc, PipelineError};
 use std::path::{Path, PathBuf};
 
@@ -26,12 +26,5 @@ pub fn run_pipeline(
         doc.apply_override(o)?;
     }
     doc.redirect_exports(out_dir);
-    let registry = grainpipe_cli::builtin_registry();
-    let p = plan(&doc, &registry, &PlanOptions::default())?;
-    execute(
-        &doc,
-        &p,
-        &RunOptions { cache_dir: None },
-        &mut SilentObserver,
-    )
+    run_quietly(&doc, &grainpipe_cli::builtin_registry())
 }

@@ -2,7 +2,7 @@
 //! formats crate: every real grain of data/sand-grains becomes a connected clump at
 //! alpha = 0.9, and the exports are written.
 
-use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
+use grainpipe_core::engine::run_quietly;
 use grainpipe_core::pipeline::PipelineDoc;
 use grainpipe_core::{ColumnData, Registry};
 use std::path::Path;
@@ -25,15 +25,7 @@ fn real_grains_become_connected_clumps_at_alpha_0_9() {
     let mut doc = PipelineDoc::load(&root.join("pipelines/clumps.yaml")).unwrap();
     let out = tempfile::tempdir().unwrap();
     doc.redirect_exports(out.path());
-    let reg = registry();
-    let p = plan(&doc, &reg, &PlanOptions::default()).unwrap();
-    let res = execute(
-        &doc,
-        &p,
-        &RunOptions { cache_dir: None },
-        &mut SilentObserver,
-    )
-    .unwrap();
+    let res = run_quietly(&doc, &registry()).unwrap();
     let report = res.outputs["clumps"]["report"].as_table().unwrap().clone();
     let cov = report.f64_column("coverage").unwrap();
     let ColumnData::I64(spheres) = &report.column("spheres").unwrap().data else {

@@ -11,7 +11,8 @@
 //! MCM_BETA (3) override the fraction, gap, tolerance, iterations per contraction step,
 //! contraction steps and beta; MCM_PERIODIC_Z=0 gives a free surface above each new layer;
 //! MCM_ENERGY (all_pairs | max_pair) and MCM_MINIMISER (fire | gradient_descent) pick the
-//! overlap energy and the minimiser; MCM_SEED0 is the first seed.
+//! overlap energy and the minimiser; MCM_SHAKE=0 turns jam shaking off; MCM_SEED0 is the
+//! first seed.
 
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{Artifact, ClumpLibrary, Inputs, RunContext, TypedStage};
@@ -21,7 +22,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 fn sand_library() -> ClumpLibrary {
-    use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
+    use grainpipe_core::engine::run_quietly;
     use grainpipe_core::pipeline::PipelineDoc;
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
     let mut doc = PipelineDoc::load(&root.join("pipelines/clumps.yaml")).unwrap();
@@ -38,14 +39,7 @@ fn sand_library() -> ClumpLibrary {
     std::env::set_current_dir(&root).unwrap();
     let mut r = grainpipe_core::Registry::new();
     grainpipe_clumps::register(&mut r);
-    let p = plan(&doc, &r, &PlanOptions::default()).unwrap();
-    let res = execute(
-        &doc,
-        &p,
-        &RunOptions { cache_dir: None },
-        &mut SilentObserver,
-    )
-    .unwrap();
+    let res = run_quietly(&doc, &r).unwrap();
     // All clumps up to 280 um (no subsample): mcm.stacked draws by Sobol itself.
     res.outputs["library"]["library"]
         .as_clump_library()
@@ -105,6 +99,7 @@ fn main() {
                 "periodic_z": env("MCM_PERIODIC_Z", 1.0) != 0.0,
                 "energy": env_str("MCM_ENERGY", "all_pairs"),
                 "minimiser": env_str("MCM_MINIMISER", "fire"),
+                "shake": env("MCM_SHAKE", 1.0) != 0.0,
             }))
             .unwrap();
             let mut inputs = Inputs::new();

@@ -143,6 +143,8 @@ pub struct Schedule {
     pub rate_max: f64,
     pub step_iterations: usize,
     pub max_iterations: usize,
+    /// Shake jams loose after a stuck step (else only undo and halve).
+    pub shake: bool,
 }
 
 /// One overlap-removal phase of the convergence history.
@@ -424,6 +426,9 @@ pub fn contract(
                     sch.rate_min
                 ),
             ));
+        }
+        if !sch.shake {
+            continue;
         }
         let s_up = (s * (1.0 + SHAKE_EXPANSION)).min(beta);
         apply(sys, mode, s, s_up);

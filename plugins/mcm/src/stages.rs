@@ -36,6 +36,7 @@ pub struct ClassicParams {
     pub energy: EnergyKind,
     pub minimiser: Minimiser,
     pub step_sizes: [f64; 2],
+    pub shake: bool,
 }
 
 impl Default for ClassicParams {
@@ -58,6 +59,7 @@ impl Default for ClassicParams {
             energy: Relaxation::default().energy,
             minimiser: Relaxation::default().minimiser,
             step_sizes: Relaxation::default().step_sizes,
+            shake: true,
         }
     }
 }
@@ -79,6 +81,7 @@ pub struct StackedParams {
     pub energy: EnergyKind,
     pub minimiser: Minimiser,
     pub step_sizes: [f64; 2],
+    pub shake: bool,
     pub periodic_z: bool,
 }
 
@@ -102,6 +105,7 @@ impl Default for StackedParams {
             energy: Relaxation::default().energy,
             minimiser: Relaxation::default().minimiser,
             step_sizes: Relaxation::default().step_sizes,
+            shake: true,
             periodic_z: true,
         }
     }
@@ -118,6 +122,7 @@ struct Common<'a> {
     step_iterations: usize,
     max_iterations: usize,
     relaxation: Relaxation,
+    shake: bool,
 }
 
 macro_rules! common_of {
@@ -136,6 +141,7 @@ macro_rules! common_of {
                 minimiser: $p.minimiser,
                 step_sizes: $p.step_sizes,
             },
+            shake: $p.shake,
         }
     };
 }
@@ -151,6 +157,7 @@ fn common_params() -> Vec<ParamSpec> {
         ParamSpec { name: "max_iterations", ty: "usize", unit: "1", doc: "minimiser iteration limit (per layer for mcm.stacked); reaching it fails the stage" },
         ParamSpec { name: "energy", ty: "all_pairs | max_pair", unit: "", doc: "overlap energy minimised: all_pairs (default) sums 1/2 delta^2 over every overlapping sphere pair (smooth); max_pair is eq. (2.4)-(2.6) as written, only the deepest sphere pair of each grain pair. Both are zero exactly when nothing overlaps" },
         ParamSpec { name: "minimiser", ty: "fire | gradient_descent", unit: "", doc: "fire (default, Bitzek et al. 2006) or the paper's fixed-step gradient descent, eq. (2.8)" },
+        ParamSpec { name: "shake", ty: "bool", unit: "", doc: "when a contraction step gets stuck: true (default) re-expands 2 %, shakes the grains around the worst overlap and relocates that grain before retrying; false only undoes the step and halves the rate (the plain contraction path)" },
         ParamSpec { name: "step_sizes", ty: "[f64; 2]", unit: "1", doc: "gradient_descent only: h_c and h_R of eq. (2.8) (paper: 0.1, 0.4); rotation steps in units of the grain's bounding radius" },
     ]
 }
@@ -217,6 +224,7 @@ fn schedule(c: &Common) -> Schedule {
         rate_max: rate0.max(0.01) * 2.0,
         step_iterations: c.step_iterations,
         max_iterations: c.max_iterations,
+        shake: c.shake,
     }
 }
 

@@ -4,7 +4,7 @@
 
 mod common;
 
-use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
+use grainpipe_core::engine::run_quietly;
 use grainpipe_core::pipeline::PipelineDoc;
 use grainpipe_core::Registry;
 use std::path::Path;
@@ -28,15 +28,7 @@ fn mcm_pipeline_runs_and_exports() {
     let mut doc = PipelineDoc::load(&root.join("pipelines/mcm.yaml")).unwrap();
     let out = tempfile::tempdir().unwrap();
     doc.redirect_exports(out.path());
-    let reg = registry();
-    let p = plan(&doc, &reg, &PlanOptions::default()).unwrap();
-    let res = execute(
-        &doc,
-        &p,
-        &RunOptions { cache_dir: None },
-        &mut SilentObserver,
-    )
-    .unwrap();
+    let res = run_quietly(&doc, &registry()).unwrap();
     let classic = res.outputs["classic"]["packing"].as_packing().unwrap();
     assert_eq!(classic.bodies.len(), 300);
     // 300 equal spheres in a cube sized for 60 %: exact up to rounding.
