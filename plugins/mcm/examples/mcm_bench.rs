@@ -79,13 +79,15 @@ fn main() {
             (l.parse().unwrap(), s.parse().unwrap())
         })
         .collect();
-    println!("| layers | size (um)^2 | grains | median time (s) | max time (s) | failures / seeds | median iterations |");
-    println!("|---|---|---|---|---|---|---|");
+    println!("| layers | size (um)^2 | grains | median time (s) | max time (s) | failures / seeds | restarts | median iterations |");
+    println!("|---|---|---|---|---|---|---|---|");
     for (layers, size) in cases {
         let mut times = Vec::new();
         let mut iters = Vec::new();
         let mut fails = 0;
         let mut grains_n = 0;
+        // Layers placed afresh after a failed try (the paper counts these as failed tries).
+        let mut restarts = 0;
         let seed0 = env("MCM_SEED0", 0.0) as u64;
         for seed in seed0..seed0 + seeds {
             let p: StackedParams = serde_json::from_value(json!({
@@ -124,6 +126,9 @@ fn main() {
                     {
                         grains_n = v.iter().sum::<i64>();
                     }
+                    if let grainpipe_core::ColumnData::I64(v) = &rep.column("tries").unwrap().data {
+                        restarts += v.iter().map(|t| t - 1).sum::<i64>();
+                    }
                     times.push(dt);
                 }
                 Err(e) => {
@@ -143,7 +148,7 @@ fn main() {
         };
         let max = times.iter().cloned().fold(0.0, f64::max);
         println!(
-            "| {layers} | {size} | {grains_n} | {:.2} | {:.2} | {fails} / {seeds} | {:.0} |",
+            "| {layers} | {size} | {grains_n} | {:.2} | {:.2} | {fails} / {seeds} | {restarts} | {:.0} |",
             med(&mut times),
             max,
             med(&mut iters)

@@ -37,6 +37,7 @@ pub struct ClassicParams {
     pub minimiser: Minimiser,
     pub step_sizes: [f64; 2],
     pub shake: bool,
+    pub restarts: usize,
 }
 
 impl Default for ClassicParams {
@@ -60,6 +61,7 @@ impl Default for ClassicParams {
             minimiser: Relaxation::default().minimiser,
             step_sizes: Relaxation::default().step_sizes,
             shake: true,
+            restarts: 2,
         }
     }
 }
@@ -82,6 +84,7 @@ pub struct StackedParams {
     pub minimiser: Minimiser,
     pub step_sizes: [f64; 2],
     pub shake: bool,
+    pub restarts: usize,
     pub periodic_z: bool,
 }
 
@@ -106,6 +109,7 @@ impl Default for StackedParams {
             minimiser: Relaxation::default().minimiser,
             step_sizes: Relaxation::default().step_sizes,
             shake: true,
+            restarts: 2,
             periodic_z: true,
         }
     }
@@ -157,6 +161,7 @@ fn common_params() -> Vec<ParamSpec> {
         ParamSpec { name: "max_iterations", ty: "usize", unit: "1", doc: "minimiser iteration limit (per layer for mcm.stacked); reaching it fails the stage" },
         ParamSpec { name: "energy", ty: "all_pairs | max_pair", unit: "", doc: "overlap energy minimised: all_pairs (default) sums 1/2 delta^2 over every overlapping sphere pair (smooth); max_pair is eq. (2.4)-(2.6) as written, only the deepest sphere pair of each grain pair. Both are zero exactly when nothing overlaps" },
         ParamSpec { name: "minimiser", ty: "fire | gradient_descent", unit: "", doc: "fire (default, Bitzek et al. 2006) or the paper's fixed-step gradient descent, eq. (2.8)" },
+        ParamSpec { name: "restarts", ty: "usize", unit: "1", doc: "a layer (the packing, for mcm.classic) that fails within max_iterations is placed afresh and packed again, up to this many times, each try with its own max_iterations (paper, section 3.5, counts such tries); the report gives the tries" },
         ParamSpec { name: "shake", ty: "bool", unit: "", doc: "when a contraction step gets stuck: true (default) re-expands 2 %, shakes the grains around the worst overlap and relocates that grain before retrying; false only undoes the step and halves the rate (the plain contraction path)" },
         ParamSpec { name: "step_sizes", ty: "[f64; 2]", unit: "1", doc: "gradient_descent only: h_c and h_R of eq. (2.8) (paper: 0.1, 0.4); rotation steps in units of the grain's bounding radius" },
     ]
@@ -165,7 +170,7 @@ fn common_params() -> Vec<ParamSpec> {
 fn outputs() -> Vec<PortSpec> {
     vec![
         PortSpec::new("packing", ArtifactKind::Packing, "periodic packing with layer ids (library embedded for clumps)"),
-        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, iterations, contraction steps, back-offs, shakes, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction"),
+        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, tries, iterations, contraction steps, back-offs, shakes, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction"),
         PortSpec::new("history", ArtifactKind::Table, "convergence history: per layer and overlap-removal phase, the contraction scale, iterations, overlap energy, largest violation and outcome (converged, stuck, shaken, shake_failed)"),
         PortSpec::new("orientation", ArtifactKind::Tensor, "3x3 orientation tensor <n n> of the grains' long axes (smallest principal moment of inertia); 1/3 I for spheres"),
     ]
@@ -325,6 +330,7 @@ fn orientation_tensor(axes: &[[f64; 3]]) -> Tensor {
 
 struct Row {
     grains: usize,
+    tries: usize,
     stats: RunStats,
     time: f64,
     fraction: f64,
@@ -335,6 +341,7 @@ fn report(rows: &[Row]) -> Table {
     Table::new("mcm")
         .with_i64("layer", "1", (0..rows.len() as i64).collect())
         .with_i64("grains", "1", ints(|r| r.grains))
+        .with_i64("tries", "1", ints(|r| r.tries))
         .with_i64("iterations", "1", ints(|r| r.stats.iterations))
         .with_i64("contraction_steps", "1", ints(|r| r.stats.steps))
         .with_i64("backoffs", "1", ints(|r| r.stats.backoffs))
@@ -388,7 +395,7 @@ fn history(rows: &[Row]) -> Table {
 }
 
 /// The stage error for a contraction run that did not reach the final size.
-fn run_failed(stage: &str, layer: usize, layers: usize, f: RunFailure) -> StageError {
+fn run_failed(stage: &str, layer: usize, layers: usize, tries: usize, f: RunFailure) -> StageError {
     let RunFailure {
         stats: st,
         reason,
@@ -398,7 +405,7 @@ fn run_failed(stage: &str, layer: usize, layers: usize, f: RunFailure) -> StageE
         return e;
     }
     StageError::failed(format!(
-        "{stage}, layer {layer} of {layers}: {}; overlap energy reached {:.3e} m^2, largest violation {:.3e} m ({}), after {} iterations, {} contraction steps, {} back-offs, {} shakes. Lower volume_fraction or min_gap, or raise max_iterations",
+        "{stage}, layer {layer} of {layers}, try {tries} of {tries}: {}; overlap energy reached {:.3e} m^2, largest violation {:.3e} m ({}), after {} iterations, {} contraction steps, {} back-offs, {} shakes. Lower volume_fraction or min_gap, or raise max_iterations",
         reason, st.energy, st.max_delta, st.worst, st.iterations, st.steps, st.backoffs, st.shakes
     ))
 }
@@ -539,17 +546,30 @@ impl TypedStage for Classic {
         let mut sys = System::new(shapes, grains, big, p.min_gap.si() + tol, tol);
         sys.margin = tol;
         sys.relaxation = common_of!(p).relaxation;
-        for i in 0..sys.grains.len() {
-            place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, |r| {
-                v3([0, 1, 2].map(|a| uniform(r, 0.0, big[a])))
-            });
-        }
         let mode = Mode::Isotropic { final_cell: cell };
         let sch = schedule(&common_of!(p));
-        let st = contract(&mut sys, &mode, p.beta, &sch, &mut rng, |f| {
-            ctx.progress((f * 1000.0) as u64, 1000)
-        })
-        .map_err(|f| run_failed("mcm.classic", 0, 1, *f))?;
+        let mut tries = 0;
+        let st = loop {
+            tries += 1;
+            sys.cell = big;
+            for i in 0..sys.grains.len() {
+                place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, |r| {
+                    v3([0, 1, 2].map(|a| uniform(r, 0.0, big[a])))
+                });
+            }
+            match contract(&mut sys, &mode, p.beta, &sch, &mut rng, |f| {
+                ctx.progress((f * 1000.0) as u64, 1000)
+            }) {
+                Ok(st) => break st,
+                Err(f) if tries <= p.restarts && f.cancelled.is_none() => {
+                    ctx.warn(&format!(
+                        "mcm.classic: try {tries} failed ({}); placing the grains afresh",
+                        f.reason
+                    ));
+                }
+                Err(f) => return Err(run_failed("mcm.classic", 0, 1, tries, *f)),
+            }
+        };
         let tagged: Vec<(Pick, f64, u32)> = picks.iter().map(|x| (*x, scale, 0)).collect();
         let built = build(&sys, &src, &tagged, cell);
         let mut packing = Packing::new(Domain::boxed([0.0; 3], cell, [true; 3]));
@@ -558,6 +578,7 @@ impl TypedStage for Classic {
         let fraction = packing.volume_fraction();
         let rows = [Row {
             grains: picks.len(),
+            tries,
             stats: st,
             time: t0.elapsed().as_secs_f64(),
             fraction,
@@ -705,13 +726,36 @@ impl TypedStage for Stacked {
                 periodic_z: p.periodic_z,
             };
             let nl = p.layers as f64;
-            let st = contract(&mut sys, &mode, p.beta, &sch, &mut rng, |f| {
-                ctx.progress(((layer as f64 + f) / nl * 1000.0) as u64, 1000)
-            })
-            .map_err(|f| run_failed("mcm.stacked", layer, p.layers, *f))?;
+            let mut tries = 1;
+            let st = loop {
+                match contract(&mut sys, &mode, p.beta, &sch, &mut rng, |f| {
+                    ctx.progress(((layer as f64 + f) / nl * 1000.0) as u64, 1000)
+                }) {
+                    Ok(st) => break st,
+                    Err(f) if tries <= p.restarts && f.cancelled.is_none() => {
+                        ctx.warn(&format!(
+                            "mcm.stacked, layer {layer}: try {tries} failed ({}); placing the layer afresh",
+                            f.reason
+                        ));
+                        tries += 1;
+                        sys.cell[2] = crate::pack::stacked_cell_z(z0 + p.beta * t, t, p.periodic_z);
+                        for i in first..sys.grains.len() {
+                            place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, |r| {
+                                v3([
+                                    uniform(r, 0.0, lx),
+                                    uniform(r, 0.0, ly),
+                                    uniform(r, z0, z0 + p.beta * t),
+                                ])
+                            });
+                        }
+                    }
+                    Err(f) => return Err(run_failed("mcm.stacked", layer, p.layers, tries, *f)),
+                }
+            };
             let vol: f64 = picks.iter().map(|x| x.volume * s.powi(3)).sum();
             rows.push(Row {
                 grains: picks.len(),
+                tries,
                 stats: st,
                 time: t0.elapsed().as_secs_f64(),
                 fraction: vol / (lx * ly * t),
