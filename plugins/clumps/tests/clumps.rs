@@ -329,10 +329,33 @@ fn sobol_subsample_reproduces_the_size_distribution_better_than_iid() {
     assert!(ks_sobol < ks_iid / 4.0, "sobol {ks_sobol} vs iid {ks_iid}");
 }
 
+/// `count` synthetic grains through clumps.garcia: the `library` input of clumps.library.
+fn synthetic_clumps(
+    count: usize,
+    ctx: &grainpipe_core::stage::RunContext,
+) -> grainpipe_core::Inputs {
+    use grainpipe_core::{Inputs, TypedStage};
+    let p = SyntheticParams {
+        count,
+        ..SyntheticParams::default()
+    };
+    let g = grainpipe_clumps::grains::Synthetic
+        .run(&p, &Inputs::new(), ctx)
+        .unwrap();
+    let mut inp = Inputs::new();
+    inp.insert("grains".into(), std::sync::Arc::new(g["grains"].clone()));
+    let c = grainpipe_clumps::clumps::Garcia
+        .run(&Default::default(), &inp, ctx)
+        .unwrap();
+    let mut out = Inputs::new();
+    out.insert("library".into(), std::sync::Arc::new(c["library"].clone()));
+    out
+}
+
 #[test]
 fn same_seed_same_clumps_under_one_and_two_threads() {
     use grainpipe_core::stage::{RunContext, SilentReporter};
-    use grainpipe_core::{Artifact, Inputs, TypedStage};
+    use grainpipe_core::{Artifact, TypedStage};
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -340,20 +363,7 @@ fn same_seed_same_clumps_under_one_and_two_threads() {
             .unwrap();
         pool.install(|| {
             let ctx = RunContext::new(9, &SilentReporter);
-            let p = SyntheticParams {
-                count: 6,
-                ..SyntheticParams::default()
-            };
-            let g = grainpipe_clumps::grains::Synthetic
-                .run(&p, &Inputs::new(), &ctx)
-                .unwrap();
-            let mut inp = Inputs::new();
-            inp.insert("grains".into(), std::sync::Arc::new(g["grains"].clone()));
-            let c = grainpipe_clumps::clumps::Garcia
-                .run(&Default::default(), &inp, &ctx)
-                .unwrap();
-            let mut inp2 = Inputs::new();
-            inp2.insert("library".into(), std::sync::Arc::new(c["library"].clone()));
+            let inp2 = synthetic_clumps(6, &ctx);
             let l = grainpipe_clumps::clumps::Library
                 .run(
                     &grainpipe_clumps::clumps::LibraryParams {
@@ -379,24 +389,10 @@ fn same_seed_same_clumps_under_one_and_two_threads() {
 fn library_cap_on_bounding_diameter_keeps_exactly_the_clumps_below_it() {
     use grainpipe_core::stage::{RunContext, SilentReporter};
     use grainpipe_core::units::Q;
-    use grainpipe_core::{Artifact, Inputs, StageError, TypedStage};
+    use grainpipe_core::{Artifact, StageError, TypedStage};
     let ctx = RunContext::new(3, &SilentReporter);
-    let g = grainpipe_clumps::grains::Synthetic
-        .run(
-            &SyntheticParams {
-                count: 8,
-                ..SyntheticParams::default()
-            },
-            &Inputs::new(),
-            &ctx,
-        )
-        .unwrap();
-    let mut inp = Inputs::new();
-    inp.insert("grains".into(), std::sync::Arc::new(g["grains"].clone()));
-    let c = grainpipe_clumps::clumps::Garcia
-        .run(&Default::default(), &inp, &ctx)
-        .unwrap();
-    let Artifact::ClumpLibrary(full) = c["library"].clone() else {
+    let inp2 = synthetic_clumps(8, &ctx);
+    let Artifact::ClumpLibrary(full) = (*inp2["library"]).clone() else {
         panic!()
     };
     let mut d: Vec<f64> = full
@@ -407,8 +403,6 @@ fn library_cap_on_bounding_diameter_keeps_exactly_the_clumps_below_it() {
     d.sort_by(f64::total_cmp);
     // A cap between the 4th and 5th smallest diameters, applied after a scale of 2.
     let cap = d[3] + 0.5 * (d[4] - d[3]);
-    let mut inp2 = Inputs::new();
-    inp2.insert("library".into(), std::sync::Arc::new(c["library"].clone()));
     let params = |cap: f64| grainpipe_clumps::clumps::LibraryParams {
         sampling: "all".into(),
         scale: 2.0,
