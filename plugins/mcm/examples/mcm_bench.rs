@@ -117,18 +117,14 @@ fn main() {
             match r {
                 Ok(out) => {
                     let rep = out["report"].as_table().unwrap();
-                    if let grainpipe_core::ColumnData::I64(v) =
-                        &rep.column("iterations").unwrap().data
-                    {
-                        iters.push(v.iter().sum::<i64>() as f64);
-                    }
-                    if let grainpipe_core::ColumnData::I64(v) = &rep.column("grains").unwrap().data
-                    {
-                        grains_n = v.iter().sum::<i64>();
-                    }
-                    if let grainpipe_core::ColumnData::I64(v) = &rep.column("tries").unwrap().data {
-                        restarts += v.iter().map(|t| t - 1).sum::<i64>();
-                    }
+                    // Sums over the layers of an integer column of the report.
+                    let total = |name: &str| match &rep.column(name).unwrap().data {
+                        grainpipe_core::ColumnData::I64(v) => v.iter().sum::<i64>(),
+                        _ => panic!("report column {name} is not an integer column"),
+                    };
+                    iters.push(total("iterations") as f64);
+                    grains_n = total("grains");
+                    restarts += total("tries") - rep.rows() as i64;
                     times.push(dt);
                 }
                 Err(e) => {

@@ -126,10 +126,10 @@ pub struct System {
 /// Outcome of one minimisation.
 #[derive(Clone, Copy, Debug)]
 pub struct Minimised {
+    /// Every violation within the tolerance. A minimisation also stops unconverged when it
+    /// stalls: the largest violation did not fall by a tenth over `STALL_WINDOW` iterations
+    /// (a jammed configuration; more iterations would not help).
     pub converged: bool,
-    /// Stopped early: the largest violation did not fall by a tenth over `STALL_WINDOW`
-    /// iterations (a jammed configuration; more iterations would not help).
-    pub stalled: bool,
     pub iterations: usize,
     /// eq. (2.6) at the user's minimum gap, plus the soft-box penalty [m^2].
     pub energy: f64,
@@ -507,7 +507,6 @@ impl System {
             if ev.max_violation <= self.tol {
                 return Minimised {
                     converged: true,
-                    stalled: false,
                     iterations: it,
                     energy: ev.reported,
                     max_delta: ev.max_violation,
@@ -519,7 +518,6 @@ impl System {
                 if window_best > 0.9 * previous_best {
                     return Minimised {
                         converged: false,
-                        stalled: true,
                         iterations: it,
                         energy: ev.reported,
                         max_delta: ev.max_violation,
@@ -595,7 +593,6 @@ impl System {
         }
         Minimised {
             converged: ev.max_violation <= self.tol,
-            stalled: false,
             iterations: max_iter,
             energy: ev.reported,
             max_delta: ev.max_violation,

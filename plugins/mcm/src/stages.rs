@@ -12,6 +12,7 @@ use grainpipe_core::{
     Outputs, Packing, ParamSpec, PortSpec, Preflight, RunContext, StageError, StageInfo, Table,
     Tensor, TensorConvention, TypedStage,
 };
+use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
@@ -394,6 +395,38 @@ fn history(rows: &[Row]) -> Table {
         )
 }
 
+/// `contract`, and after a failed try (not a cancellation) `replace` followed by another
+/// try, up to `restarts` times. Ok = (stats, tries); Err = (tries, the last failure).
+#[allow(clippy::too_many_arguments)]
+fn contract_with_restarts(
+    sys: &mut System,
+    mode: &Mode,
+    beta: f64,
+    sch: &Schedule,
+    restarts: usize,
+    rng: &mut ChaCha8Rng,
+    ctx: &RunContext,
+    what: &str,
+    mut progress: impl FnMut(f64) -> Result<(), StageError>,
+    mut replace: impl FnMut(&mut System, &mut ChaCha8Rng),
+) -> Result<(RunStats, usize), (usize, Box<RunFailure>)> {
+    let mut tries = 1;
+    loop {
+        match contract(sys, mode, beta, sch, rng, &mut progress) {
+            Ok(st) => return Ok((st, tries)),
+            Err(f) if tries <= restarts && f.cancelled.is_none() => {
+                ctx.warn(&format!(
+                    "{what}: try {tries} failed ({}); placing the grains afresh",
+                    f.reason
+                ));
+                tries += 1;
+                replace(sys, rng);
+            }
+            Err(f) => return Err((tries, f)),
+        }
+    }
+}
+
 /// The stage error for a contraction run that did not reach the final size.
 fn run_failed(stage: &str, layer: usize, layers: usize, tries: usize, f: RunFailure) -> StageError {
     let RunFailure {
@@ -548,28 +581,28 @@ impl TypedStage for Classic {
         sys.relaxation = common_of!(p).relaxation;
         let mode = Mode::Isotropic { final_cell: cell };
         let sch = schedule(&common_of!(p));
-        let mut tries = 0;
-        let st = loop {
-            tries += 1;
+        let place_all = |sys: &mut System, rng: &mut ChaCha8Rng| {
             sys.cell = big;
             for i in 0..sys.grains.len() {
-                place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, |r| {
+                place(sys, i, rng, PLACE_ATTEMPTS, |r| {
                     v3([0, 1, 2].map(|a| uniform(r, 0.0, big[a])))
                 });
             }
-            match contract(&mut sys, &mode, p.beta, &sch, &mut rng, |f| {
-                ctx.progress((f * 1000.0) as u64, 1000)
-            }) {
-                Ok(st) => break st,
-                Err(f) if tries <= p.restarts && f.cancelled.is_none() => {
-                    ctx.warn(&format!(
-                        "mcm.classic: try {tries} failed ({}); placing the grains afresh",
-                        f.reason
-                    ));
-                }
-                Err(f) => return Err(run_failed("mcm.classic", 0, 1, tries, *f)),
-            }
         };
+        place_all(&mut sys, &mut rng);
+        let (st, tries) = contract_with_restarts(
+            &mut sys,
+            &mode,
+            p.beta,
+            &sch,
+            p.restarts,
+            &mut rng,
+            ctx,
+            "mcm.classic",
+            |f| ctx.progress((f * 1000.0) as u64, 1000),
+            place_all,
+        )
+        .map_err(|(tries, f)| run_failed("mcm.classic", 0, 1, tries, *f))?;
         let tagged: Vec<(Pick, f64, u32)> = picks.iter().map(|x| (*x, scale, 0)).collect();
         let built = build(&sys, &src, &tagged, cell);
         let mut packing = Packing::new(Domain::boxed([0.0; 3], cell, [true; 3]));
@@ -698,6 +731,14 @@ impl TypedStage for Stacked {
             sys.margin = tol;
             sys.gap = p.min_gap.si() + tol;
             sys.cell[2] = crate::pack::stacked_cell_z(z0 + p.beta * t, t, p.periodic_z);
+            // Centroids uniform in the layer enlarged by beta along z.
+            let in_layer = |r: &mut ChaCha8Rng| {
+                v3([
+                    uniform(r, 0.0, lx),
+                    uniform(r, 0.0, ly),
+                    uniform(r, z0, z0 + p.beta * t),
+                ])
+            };
             for pk in &picks {
                 sys.shapes.push(src.shape(pk, s));
                 sys.grains.push(Grain {
@@ -708,13 +749,7 @@ impl TypedStage for Stacked {
                     zbox: None,
                 });
                 let i = sys.grains.len() - 1;
-                place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, |r| {
-                    v3([
-                        uniform(r, 0.0, lx),
-                        uniform(r, 0.0, ly),
-                        uniform(r, z0, z0 + p.beta * t),
-                    ])
-                });
+                place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, in_layer);
                 tagged.push((*pk, s, layer as u32));
             }
             check_fits("layer_size", lx.min(ly), &sys.shapes)?;
@@ -726,32 +761,24 @@ impl TypedStage for Stacked {
                 periodic_z: p.periodic_z,
             };
             let nl = p.layers as f64;
-            let mut tries = 1;
-            let st = loop {
-                match contract(&mut sys, &mode, p.beta, &sch, &mut rng, |f| {
-                    ctx.progress(((layer as f64 + f) / nl * 1000.0) as u64, 1000)
-                }) {
-                    Ok(st) => break st,
-                    Err(f) if tries <= p.restarts && f.cancelled.is_none() => {
-                        ctx.warn(&format!(
-                            "mcm.stacked, layer {layer}: try {tries} failed ({}); placing the layer afresh",
-                            f.reason
-                        ));
-                        tries += 1;
-                        sys.cell[2] = crate::pack::stacked_cell_z(z0 + p.beta * t, t, p.periodic_z);
-                        for i in first..sys.grains.len() {
-                            place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, |r| {
-                                v3([
-                                    uniform(r, 0.0, lx),
-                                    uniform(r, 0.0, ly),
-                                    uniform(r, z0, z0 + p.beta * t),
-                                ])
-                            });
-                        }
+            let (st, tries) = contract_with_restarts(
+                &mut sys,
+                &mode,
+                p.beta,
+                &sch,
+                p.restarts,
+                &mut rng,
+                ctx,
+                &format!("mcm.stacked, layer {layer}"),
+                |f| ctx.progress(((layer as f64 + f) / nl * 1000.0) as u64, 1000),
+                |sys, rng| {
+                    sys.cell[2] = crate::pack::stacked_cell_z(z0 + p.beta * t, t, p.periodic_z);
+                    for i in first..sys.grains.len() {
+                        place(sys, i, rng, PLACE_ATTEMPTS, in_layer);
                     }
-                    Err(f) => return Err(run_failed("mcm.stacked", layer, p.layers, tries, *f)),
-                }
-            };
+                },
+            )
+            .map_err(|(tries, f)| run_failed("mcm.stacked", layer, p.layers, tries, *f))?;
             let vol: f64 = picks.iter().map(|x| x.volume * s.powi(3)).sum();
             rows.push(Row {
                 grains: picks.len(),
