@@ -103,6 +103,27 @@ pub enum SizeDistribution {
     },
 }
 
+impl crate::params::ParamType for SizeDistribution {
+    fn type_name() -> String {
+        "size distribution ({kind: fixed | uniform | normal | lognormal | weibull | gamma | \
+         exponential | beta | triangular | tabulated, ...})"
+            .to_string()
+    }
+    fn unit() -> &'static str {
+        "m"
+    }
+    fn schema() -> serde_json::Value {
+        serde_json::json!({
+            "type": "object",
+            "required": ["kind"],
+            "properties": {"kind": {"enum": [
+                "fixed", "uniform", "normal", "lognormal", "weibull", "gamma", "exponential",
+                "beta", "triangular", "tabulated"
+            ]}}
+        })
+    }
+}
+
 impl Default for SizeDistribution {
     /// The 316L powder radius law of the sphere-filling paper, eq. (2.4):
     /// Weibull with scale 15.7 um and shape 3.55 (mean radius 14.14 um).

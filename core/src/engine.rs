@@ -6,7 +6,7 @@ use crate::model::{Artifact, ArtifactMeta, Provenance};
 use crate::pipeline::{Loc, PipelineDoc, PipelineError, PortRef};
 use crate::registry::{closest, Exporter, Registry};
 use crate::stage::{
-    InputMetas, Inputs, Outputs, Preflight, Reporter, RunContext, Stage, StageError,
+    InputMetas, Inputs, Outputs, Preflight, Prepared, Reporter, RunContext, Stage, StageError,
 };
 use indexmap::IndexMap;
 use std::path::{Path, PathBuf};
@@ -30,9 +30,14 @@ pub struct PlannedStep {
     pub params: serde_json::Value,
     pub inputs: IndexMap<String, Wire>,
     pub preflight: Preflight,
+    /// What preflight prepared for the run (typed parameters, the stage's plan).
+    pub prepared: Prepared,
     /// The step's own seed, derived from (pipeline seed, step id).
     pub seed: u64,
-    /// Content hash of (stage id, version, params, seed, input keys).
+    /// Files and directories the step reads (parameters declared `file`), with the BLAKE3
+    /// hash of their content, which is part of the cache key.
+    pub input_files: Vec<(String, String)>,
+    /// Content hash of (stage id, version, params, seed, input files, input keys).
     pub cache_key: String,
     /// `built-in` or the plugin library the stage came from.
     pub origin: String,
@@ -307,12 +312,14 @@ pub fn plan(
                 })?;
             metas.insert(port.clone(), meta);
         }
-        let pf = stages[i]
+        let (pf, prepared) = stages[i]
             .preflight(&params[i], &metas)
             .map_err(|e| stage_error(doc, i, &*stages[i], e))?;
         memory = memory.saturating_add(pf.memory_bytes);
         let seed = crate::derive_seed(doc.seed, s.id.as_bytes());
-        let key = cache_key(&*stages[i], &params[i], seed, &wires[i], &planned);
+        let input_files = hash_input_files(&*stages[i], &params[i])
+            .map_err(|(key, m)| err(doc, s.param_locs.get(&key).copied().unwrap_or(s.uses_loc), m))?;
+        let key = cache_key(&*stages[i], &params[i], seed, &input_files, &wires[i], &planned);
         planned[i] = Some(PlannedStep {
             index: i,
             id: s.id.clone(),
@@ -320,7 +327,9 @@ pub fn plan(
             params: params[i].clone(),
             inputs: wires[i].clone(),
             preflight: pf,
+            prepared,
             seed,
+            input_files,
             cache_key: key,
             origin: origins[i].clone(),
         });
@@ -382,6 +391,18 @@ fn stage_error(doc: &PipelineDoc, i: usize, stage: &dyn Stage, e: StageError) ->
     let s = &doc.steps[i];
     let info = stage.info();
     match e {
+        StageError::UnknownParam { key, suggestion } => {
+            let loc = s.param_locs.get(&key).copied().unwrap_or(s.uses_loc);
+            err(
+                doc,
+                loc,
+                format!("step `{}` ({}): unknown parameter `{key}`", s.id, info.id),
+            )
+            .with_help(did_you_mean(suggestion).or(Some(format!(
+                "`pipe describe {}` lists its parameters",
+                info.id
+            ))))
+        }
         StageError::InvalidParam { key, message } => {
             let top = key.split(['.', '[']).next().unwrap_or(&key).to_string();
             let loc = s.param_locs.get(&top).copied().unwrap_or(s.uses_loc);
@@ -394,7 +415,7 @@ fn stage_error(doc: &PipelineDoc, i: usize, stage: &dyn Stage, e: StageError) ->
                 info.params
                     .iter()
                     .find(|p| p.name == top)
-                    .map(|p| format!("`{}`: {}{}", p.name, p.doc, unit_hint(p.unit)))
+                    .map(|p| format!("`{}`: {}{}", p.name, p.doc, unit_hint(&p.unit)))
             };
             err(
                 doc,
@@ -526,10 +547,44 @@ fn topological_order(
     Ok(order)
 }
 
+/// The content hash of every file or directory named by a parameter declared `file`
+/// (`reads_file`), so editing an input invalidates the cache. Errors name the parameter.
+fn hash_input_files(
+    stage: &dyn Stage,
+    params: &serde_json::Value,
+) -> Result<Vec<(String, String)>, (String, String)> {
+    let mut out = Vec::new();
+    for spec in stage.info().params.iter().filter(|p| p.reads_file) {
+        let mut paths = Vec::new();
+        collect_paths(params.get(spec.name).unwrap_or(&serde_json::Value::Null), &mut paths);
+        for path in paths {
+            let hash = crate::fsutil::content_hash(Path::new(&path)).map_err(|e| {
+                (
+                    spec.name.to_string(),
+                    format!("parameter `{}`: cannot read `{path}`: {e}", spec.name),
+                )
+            })?;
+            out.push((path, hash));
+        }
+    }
+    Ok(out)
+}
+
+/// Strings in a parameter value (a path, or a list or map of paths); empty strings are unset.
+fn collect_paths(v: &serde_json::Value, out: &mut Vec<String>) {
+    match v {
+        serde_json::Value::String(s) if !s.is_empty() => out.push(s.clone()),
+        serde_json::Value::Array(a) => a.iter().for_each(|x| collect_paths(x, out)),
+        serde_json::Value::Object(m) => m.values().for_each(|x| collect_paths(x, out)),
+        _ => {}
+    }
+}
+
 fn cache_key(
     stage: &dyn Stage,
     params: &serde_json::Value,
     seed: u64,
+    input_files: &[(String, String)],
     wires: &IndexMap<String, Wire>,
     planned: &[Option<PlannedStep>],
 ) -> String {
@@ -541,6 +596,12 @@ fn cache_key(
     h.update(b"\0");
     h.update(params.to_string().as_bytes());
     h.update(&seed.to_le_bytes());
+    for (path, hash) in input_files {
+        h.update(path.as_bytes());
+        h.update(b"#");
+        h.update(hash.as_bytes());
+        h.update(b";");
+    }
     let mut inputs: Vec<_> = wires.iter().collect();
     inputs.sort_by(|a, b| a.0.cmp(b.0));
     for (port, w) in inputs {
@@ -688,7 +749,7 @@ pub fn execute(
             Some(o) => o,
             None => {
                 let ctx = RunContext::new(step.seed, &*reporter);
-                let o = step.stage.run(&step.params, &inputs, &ctx).map_err(|e| {
+                let o = step.stage.run(&step.params, &step.prepared, &inputs, &ctx).map_err(|e| {
                     let class_input = matches!(
                         e,
                         StageError::InvalidParam { .. } | StageError::InvalidInput { .. }
@@ -746,11 +807,25 @@ fn check_outputs(
     o: &Outputs,
 ) -> Result<(), PipelineError> {
     for spec in &step.stage.info().outputs {
-        if !step.preflight.outputs.contains_key(spec.name) {
+        let Some(announced) = step.preflight.outputs.get(spec.name) else {
             continue;
-        }
+        };
         match o.get(spec.name) {
-            Some(a) if a.kind() == spec.kind => {}
+            Some(a) if a.kind() == spec.kind => {
+                if let Err(m) = announced.check(a) {
+                    return Err(PipelineError::run(
+                        &doc.file,
+                        Some(doc.steps[i].uses_loc),
+                        format!(
+                            "internal error in stage `{}`: output `{}` {m} (its preflight \
+                             announced one thing and its run produced another; please report \
+                             this)",
+                            step.stage.info().id,
+                            spec.name
+                        ),
+                    ));
+                }
+            }
             Some(a) => {
                 return Err(PipelineError::run(
                     &doc.file,
@@ -801,6 +876,16 @@ fn provenance(
     e.insert("stage_seed".into(), step.seed.to_string());
     e.insert("params".into(), step.params.to_string());
     e.insert("cache_key".into(), step.cache_key.clone());
+    if !step.input_files.is_empty() {
+        e.insert(
+            "input_files_blake3".into(),
+            step.input_files
+                .iter()
+                .map(|(p, h)| format!("{p}={h}"))
+                .collect::<Vec<_>>()
+                .join(", "),
+        );
+    }
     e.insert(
         "stage_timings_s".into(),
         timings

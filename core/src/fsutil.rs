@@ -73,3 +73,29 @@ mod tests {
         assert_eq!(std::fs::read(&target).unwrap(), b"ok");
     }
 }
+
+/// BLAKE3 of a file's bytes, or of a directory's files (relative names and contents, in
+/// sorted order, recursively), as hex. Identifies an input by content, not by path or time.
+pub fn content_hash(path: &Path) -> std::io::Result<String> {
+    let mut h = blake3::Hasher::new();
+    hash_into(path, Path::new(""), &mut h)?;
+    Ok(h.finalize().to_hex().to_string())
+}
+
+fn hash_into(path: &Path, relative: &Path, h: &mut blake3::Hasher) -> std::io::Result<()> {
+    let meta = std::fs::metadata(path)?;
+    if meta.is_dir() {
+        let mut entries: Vec<_> = std::fs::read_dir(path)?
+            .map(|e| e.map(|e| e.file_name()))
+            .collect::<Result<_, _>>()?;
+        entries.sort();
+        for name in entries {
+            hash_into(&path.join(&name), &relative.join(&name), h)?;
+        }
+    } else {
+        h.update(relative.to_string_lossy().as_bytes());
+        h.update(&meta.len().to_le_bytes());
+        h.update_reader(std::fs::File::open(path)?)?;
+    }
+    Ok(())
+}

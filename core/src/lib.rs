@@ -5,17 +5,26 @@ pub mod distributions;
 pub mod engine;
 pub mod fsutil;
 pub mod model;
+pub mod params;
 pub mod pipeline;
 pub mod plugin_host;
 pub mod registry;
+pub mod spatial;
+pub mod testing;
 pub mod stage;
 pub mod units;
 
+// Lets `#[params]`-generated code name this crate from inside it too.
+extern crate self as grainpipe_core;
+
+pub use grainpipe_derive::{params, ParamChoice};
 pub use model::*;
+pub use serde_json;
+pub use params::{ParamType, Params};
 pub use registry::{Exporter, Registry};
 pub use stage::{
-    input, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, RunContext, Stage,
-    StageError, StageInfo, TypedStage,
+    input, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, Prepared, RunContext,
+    Stage, StageError, StageInfo, TypedStage,
 };
 
 /// grainpipe's version, recorded in every output's provenance.

@@ -544,17 +544,24 @@ artifact_accessors! {
     as_series => Series,
 }
 
-/// What preflight knows about an artifact before it exists: its kind, the grid of voxel
-/// artifacts when known, and an estimated size.
+/// What preflight knows about an artifact before it exists: its kind, and whatever the
+/// parameters and the inputs' metadata determine (the grid of voxel artifacts, the box,
+/// periodicity and body-count bounds of packings). The engine holds the produced artifact to
+/// every field that is set ([`ArtifactMeta::check`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ArtifactMeta {
     pub kind: ArtifactKind,
     pub grid: Option<Grid>,
-    /// Estimated number of items (bodies, contacts, rows); 0 when unknown.
+    /// Estimated number of items (bodies, clumps, contacts, rows, frames) for memory
+    /// estimates; 0 when unknown. Not checked.
     pub count_estimate: u64,
+    /// Inclusive bounds on that number, when the parameters fix them. Checked.
+    pub count_bounds: Option<[u64; 2]>,
     /// The box of a packing (min, max corners) when known before running.
     pub domain_box: Option<([f64; 3], [f64; 3])>,
-    /// A typical body size (mean diameter) [m] when known before running.
+    /// The periodic axes of a packing's domain when known before running.
+    pub periodic: Option<[bool; 3]>,
+    /// A typical body size (mean diameter) [m] when known before running. Not checked.
     pub length_scale: Option<f64>,
 }
 
@@ -564,10 +571,116 @@ impl ArtifactMeta {
             kind,
             grid: None,
             count_estimate: 0,
+            count_bounds: None,
             domain_box: None,
+            periodic: None,
             length_scale: None,
         }
     }
+
+    /// A voxel artifact on a known grid.
+    pub fn on_grid(kind: ArtifactKind, grid: Grid) -> Self {
+        ArtifactMeta {
+            count_estimate: grid.voxel_count() as u64,
+            grid: Some(grid),
+            ..ArtifactMeta::of(kind)
+        }
+    }
+
+    /// A packing whose domain box and periodicity are known.
+    pub fn packing(min: [f64; 3], max: [f64; 3], periodic: [bool; 3]) -> Self {
+        ArtifactMeta {
+            domain_box: Some((min, max)),
+            periodic: Some(periodic),
+            ..ArtifactMeta::of(ArtifactKind::Packing)
+        }
+    }
+
+    pub fn with_count(mut self, estimate: u64, bounds: Option<[u64; 2]>) -> Self {
+        self.count_estimate = estimate;
+        self.count_bounds = bounds;
+        self
+    }
+
+    pub fn with_length_scale(mut self, length: f64) -> Self {
+        self.length_scale = Some(length);
+        self
+    }
+
+    /// The number of items in `a` that `count_bounds` speaks of.
+    pub fn count_of(a: &Artifact) -> u64 {
+        (match a {
+            Artifact::PhaseImage(x) => x.labels.len(),
+            Artifact::Field(x) => x.grid.voxel_count(),
+            Artifact::ClumpLibrary(x) => x.clumps.len(),
+            Artifact::Packing(x) => x.bodies.len(),
+            Artifact::ContactGraph(x) => x.contacts.len(),
+            Artifact::Table(x) => x.rows(),
+            Artifact::Tensor(x) => x.values.len(),
+            Artifact::Series(x) => x.frames.len(),
+        }) as u64
+    }
+
+    /// Checks a produced artifact against this announcement; the message says what differs.
+    pub fn check(&self, a: &Artifact) -> Result<(), String> {
+        if a.kind() != self.kind {
+            return Err(format!("announced a {} but gave a {}", self.kind, a.kind()));
+        }
+        if let Some(g) = &self.grid {
+            let got = match a {
+                Artifact::PhaseImage(x) => Some(&x.grid),
+                Artifact::Field(x) => Some(&x.grid),
+                _ => None,
+            };
+            if let Some(got) = got {
+                if !grids_agree(g, got) {
+                    return Err(format!("announced the grid {g:?} but gave {got:?}"));
+                }
+            }
+        }
+        if let Artifact::Packing(p) = a {
+            if let Some((min, max)) = self.domain_box {
+                let scale = (0..3)
+                    .map(|k| (max[k] - min[k]).abs())
+                    .fold(0.0f64, f64::max)
+                    .max(f64::MIN_POSITIVE);
+                let close = |u: [f64; 3], v: [f64; 3]| {
+                    (0..3).all(|k| (u[k] - v[k]).abs() <= 1e-9 * scale)
+                };
+                if !close(min, p.domain.min) || !close(max, p.domain.max) {
+                    return Err(format!(
+                        "announced the domain box {min:?}..{max:?} but gave {:?}..{:?}",
+                        p.domain.min, p.domain.max
+                    ));
+                }
+            }
+            if let Some(per) = self.periodic {
+                if per != p.domain.periodic {
+                    return Err(format!(
+                        "announced periodic axes {per:?} but gave {:?}",
+                        p.domain.periodic
+                    ));
+                }
+            }
+        }
+        if let Some([lo, hi]) = self.count_bounds {
+            let n = Self::count_of(a);
+            if n < lo || n > hi {
+                return Err(format!("announced between {lo} and {hi} items but gave {n}"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Same dims and periodicity; spacing and origin equal to 1e-6 of a voxel.
+pub fn grids_agree(a: &Grid, b: &Grid) -> bool {
+    a.dims == b.dims
+        && a.periodic == b.periodic
+        && (0..3).all(|k| {
+            let tol = 1e-6 * a.spacing[k].abs().max(f64::MIN_POSITIVE);
+            (a.spacing[k] - b.spacing[k]).abs() <= tol && (a.origin[k] - b.origin[k]).abs() <= tol
+        })
 }
 
 /// Metadata about how an artifact was made, written into every exported file.

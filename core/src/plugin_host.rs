@@ -7,8 +7,8 @@
 use crate::model::*;
 use crate::registry::Registry;
 use crate::stage::{
-    InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, RunContext, Stage, StageError,
-    StageInfo,
+    InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, Prepared, RunContext, Stage,
+    StageError, StageInfo,
 };
 use crate::units::{parse_quantity, parse_unit};
 use grainpipe_plugin_api::{
@@ -20,6 +20,19 @@ use serde_json::{json, Value};
 use std::ffi::c_void;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+
+/// A JSON Schema for a foreign parameter, from the JSON type of its default.
+fn json_schema_of(default: &Value) -> Value {
+    match default {
+        Value::Bool(_) => json!({"type": "boolean"}),
+        Value::Number(n) if n.is_f64() => json!({"anyOf": [{"type": "number"}, {"type": "string"}]}),
+        Value::Number(_) => json!({"anyOf": [{"type": "integer"}, {"type": "string"}]}),
+        Value::String(_) => json!({"type": "string"}),
+        Value::Array(_) => json!({"type": "array"}),
+        Value::Object(_) => json!({"type": "object"}),
+        Value::Null => json!({}),
+    }
+}
 
 /// File name endings of shared libraries on this platform.
 const LIB_EXTENSIONS: &[&str] = &["so", "dylib", "dll"];
@@ -89,6 +102,9 @@ struct MetaParam {
     #[serde(default)]
     doc: String,
     default: Value,
+    /// The value names an input file or directory (the cache hashes its content).
+    #[serde(default)]
+    file: bool,
 }
 
 #[derive(Deserialize)]
@@ -228,13 +244,18 @@ impl ForeignStage {
                 parse_unit(&p.unit)
                     .map_err(|e| format!("{}: parameter `{}`: {e}", m.id, p.name))?;
             }
-            defaults.insert(p.name.clone(), p.default);
+            let schema = json_schema_of(&p.default);
+            let name = leak(p.name);
             params.push(ParamSpec {
-                name: leak(p.name),
-                ty: leak(p.ty),
-                unit: leak(p.unit),
+                name,
+                ty: p.ty,
+                unit: if p.unit == "1" { String::new() } else { p.unit },
                 doc: leak(p.doc),
+                reads_file: p.file,
+                schema,
+                default: p.default.clone(),
             });
+            defaults.insert(name.to_string(), p.default);
         }
         let info = StageInfo {
             id: leak(m.id),
@@ -318,23 +339,16 @@ impl Stage for ForeignStage {
                 .params
                 .iter()
                 .find(|p| p.name == k)
-                .ok_or_else(|| {
-                    let names: Vec<String> = self
-                        .info
-                        .params
-                        .iter()
-                        .map(|p| format!("`{}`", p.name))
-                        .collect();
-                    StageError::param(
-                        k,
-                        format!("unknown field `{k}`, expected one of {}", names.join(", ")),
-                    )
+                .ok_or_else(|| StageError::UnknownParam {
+                    key: k.clone(),
+                    suggestion: crate::registry::closest(k, self.info.params.iter().map(|p| p.name)),
                 })?;
             let mut v = v.clone();
             let dimensional = !spec.unit.is_empty() && spec.unit != "1";
             if dimensional {
                 if let Value::String(s) = &v {
-                    let (_, want) = parse_unit(spec.unit).map_err(|e| StageError::param(k, e))?;
+                    let (_, want) =
+                        parse_unit(&spec.unit).map_err(|e| StageError::param(k, e))?;
                     let q = parse_quantity(s).map_err(|e| StageError::param(k, e))?;
                     if q.dim != want {
                         return Err(StageError::param(
@@ -360,7 +374,11 @@ impl Stage for ForeignStage {
         Ok(Value::Object(out))
     }
 
-    fn preflight(&self, params: &Value, inputs: &InputMetas) -> Result<Preflight, StageError> {
+    fn preflight(
+        &self,
+        params: &Value,
+        inputs: &InputMetas,
+    ) -> Result<(Preflight, Prepared), StageError> {
         let metas: Vec<Marshalled> = inputs
             .iter()
             .map(|(port, m)| Marshalled::meta(port, m))
@@ -381,10 +399,16 @@ impl Stage for ForeignStage {
                 }
             }
         }
-        Ok(pf)
+        Ok((pf, Arc::new(())))
     }
 
-    fn run(&self, params: &Value, inputs: &Inputs, rc: &RunContext) -> Result<Outputs, StageError> {
+    fn run(
+        &self,
+        params: &Value,
+        _prepared: &Prepared,
+        inputs: &Inputs,
+        rc: &RunContext,
+    ) -> Result<Outputs, StageError> {
         let marshalled = inputs
             .iter()
             .map(|(port, a)| Marshalled::artifact(port, a))

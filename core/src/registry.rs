@@ -2,6 +2,7 @@
 //! `register(&mut Registry)`; the core knows no plugin by name.
 
 use crate::model::{Artifact, ArtifactKind, Provenance};
+use crate::params::RUST_TYPE_WORDS;
 use crate::stage::{Stage, Typed, TypedStage};
 use indexmap::IndexMap;
 use std::path::Path;
@@ -120,35 +121,65 @@ impl Registry {
         closest(id, self.stages.keys().map(|s| s.as_str()))
     }
 
-    /// Checks that every stage's declared parameters match its defaults, key for key, so
-    /// `pipe describe` cannot drift from the params struct.
+    /// Checks every stage's self-description, so `pipe describe`, the JSON Schema and the
+    /// parameters a stage accepts cannot drift apart: ids of the form `<family>.<name>`;
+    /// parameter names unique, each documented, with a type in words (no Rust type names) and
+    /// a unit that parses; the declared parameters are exactly the default struct's keys; the
+    /// defaults normalize; port names unique.
     pub fn check_consistency(&self) -> Result<(), String> {
         for r in self.stages.values() {
             let info = r.stage.info();
+            let id = info.id;
+            let (family, name) = id
+                .split_once('.')
+                .ok_or_else(|| format!("{id}: stage ids are `<family>.<name>`"))?;
+            if family.is_empty() || name.is_empty() || name.contains('.') {
+                return Err(format!("{id}: stage ids are `<family>.<name>`"));
+            }
+            if info.doc.trim().is_empty() {
+                return Err(format!("{id}: the stage has no doc"));
+            }
             let defaults = r.stage.default_params();
             let keys: Vec<&str> = defaults
                 .as_object()
                 .map(|m| m.keys().map(|k| k.as_str()).collect())
                 .unwrap_or_default();
-            for p in &info.params {
+            for (n, p) in info.params.iter().enumerate() {
+                if info.params[..n].iter().any(|q| q.name == p.name) {
+                    return Err(format!("{id}: parameter `{}` is declared twice", p.name));
+                }
                 if !keys.contains(&p.name) {
+                    return Err(format!("{id}: declared parameter `{}` is not a field", p.name));
+                }
+                if p.doc.trim().is_empty() {
+                    return Err(format!("{id}: parameter `{}` has no doc", p.name));
+                }
+                if p.ty.is_empty() || RUST_TYPE_WORDS.iter().any(|w| p.ty.contains(w)) {
                     return Err(format!(
-                        "{}: documented param `{}` is not a field",
-                        info.id, p.name
+                        "{id}: parameter `{}` has type `{}`; describe the value in words",
+                        p.name, p.ty
                     ));
+                }
+                if !p.unit.is_empty() {
+                    crate::units::parse_unit(&p.unit)
+                        .map_err(|e| format!("{id}: parameter `{}`: {e}", p.name))?;
                 }
             }
             for k in &keys {
                 if !info.params.iter().any(|p| p.name == *k) {
-                    return Err(format!("{}: field `{k}` is not documented", info.id));
+                    return Err(format!("{id}: field `{k}` is not declared"));
                 }
             }
-            if !info.id.contains('.') {
-                return Err(format!("{}: stage ids are `<family>.<name>`", info.id));
+            for ports in [&info.inputs, &info.outputs] {
+                for (n, p) in ports.iter().enumerate() {
+                    if ports[..n].iter().any(|q| q.name == p.name) {
+                        return Err(format!("{id}: port `{}` is declared twice", p.name));
+                    }
+                }
             }
             r.stage
                 .normalize_params(&serde_json::json!({}))
-                .map_err(|e| format!("{}: defaults do not parse: {e}", info.id))?;
+                .map_err(|e| format!("{id}: defaults do not parse: {e}"))?;
         }
         Ok(())
     }

@@ -9,19 +9,11 @@ use crate::model::{Artifact, ArtifactKind, ArtifactMeta};
 use indexmap::IndexMap;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use serde::{de::DeserializeOwned, Serialize};
+use crate::params::{unknown_keys, Params};
+use std::any::Any;
 use std::sync::Arc;
 
-/// A declared parameter, shown by `pipe describe`.
-#[derive(Clone, Debug)]
-pub struct ParamSpec {
-    pub name: &'static str,
-    /// Short type description: "length", "integer", "one of: a, b", "[m, n, p]", ...
-    pub ty: &'static str,
-    /// SI unit of the value ("" for dimensionless or non-numeric).
-    pub unit: &'static str,
-    pub doc: &'static str,
-}
+pub use crate::params::ParamSpec;
 
 /// A declared input or output port.
 #[derive(Clone, Debug)]
@@ -61,24 +53,52 @@ pub struct StageInfo {
     pub version: &'static str,
     /// One paragraph: what it does, the method, the paper it follows.
     pub doc: &'static str,
+    /// Filled from the stage's parameter declaration (`#[params]`); leave it empty.
     pub params: Vec<ParamSpec>,
     pub inputs: Vec<PortSpec>,
     pub outputs: Vec<PortSpec>,
 }
 
-/// Result of a successful preflight.
+impl StageInfo {
+    /// A stage with no ports yet; add them with [`StageInfo::inputs`] and [`StageInfo::outputs`].
+    pub fn new(id: &'static str, version: &'static str, doc: &'static str) -> Self {
+        StageInfo {
+            id,
+            version,
+            doc,
+            params: Vec::new(),
+            inputs: Vec::new(),
+            outputs: Vec::new(),
+        }
+    }
+    pub fn inputs(mut self, inputs: Vec<PortSpec>) -> Self {
+        self.inputs = inputs;
+        self
+    }
+    pub fn outputs(mut self, outputs: Vec<PortSpec>) -> Self {
+        self.outputs = outputs;
+        self
+    }
+}
+
+/// Result of a successful preflight: what the run will produce, what it will cost, and the
+/// stage's own plan (what preflight worked out and `run` consumes, so nothing is parsed or
+/// built twice; `()` for stages with nothing to carry over).
 #[derive(Clone, Debug)]
-pub struct Preflight {
-    /// The outputs the run will give. A stage whose parameters select among alternative
-    /// outputs (e.g. `as: phase_image | field`) lists only the selected ones; consumers and
-    /// exports of an unlisted output are refused before anything runs.
+pub struct Preflight<P = ()> {
+    /// The outputs the run will give, with everything known about them before running (grid,
+    /// domain box, count bounds). A stage whose parameters select among alternative outputs
+    /// (e.g. `as: phase_image | field`) lists only the selected ones; consumers and exports of
+    /// an unlisted output are refused before anything runs. The engine checks the produced
+    /// artifacts against these announcements.
     pub outputs: IndexMap<String, ArtifactMeta>,
     /// Estimated peak memory of `run` [bytes].
     pub memory_bytes: u64,
+    pub plan: P,
 }
 
 impl Preflight {
-    /// Outputs as declared by `info`, no grid knowledge, given memory estimate.
+    /// Outputs as declared by `info`, nothing known about them yet, given memory estimate.
     pub fn from_info(info: &StageInfo, memory_bytes: u64) -> Self {
         Preflight {
             outputs: info
@@ -87,7 +107,25 @@ impl Preflight {
                 .map(|p| (p.name.to_string(), ArtifactMeta::of(p.kind)))
                 .collect(),
             memory_bytes,
+            plan: (),
         }
+    }
+}
+
+impl<P> Preflight<P> {
+    /// The same announcement carrying another plan.
+    pub fn with_plan<Q>(self, plan: Q) -> Preflight<Q> {
+        Preflight {
+            outputs: self.outputs,
+            memory_bytes: self.memory_bytes,
+            plan,
+        }
+    }
+
+    /// Replaces what is announced about output `port`.
+    pub fn announce(mut self, port: &str, meta: ArtifactMeta) -> Self {
+        self.outputs.insert(port.to_string(), meta);
+        self
     }
 }
 
@@ -97,6 +135,12 @@ impl Preflight {
 pub enum StageError {
     #[error("parameter `{key}`: {message}")]
     InvalidParam { key: String, message: String },
+    #[error("unknown parameter `{key}`")]
+    UnknownParam {
+        key: String,
+        /// The closest declared parameter name.
+        suggestion: Option<String>,
+    },
     #[error("input `{port}`: {message}")]
     InvalidInput { port: String, message: String },
     #[error("{0}")]
@@ -211,6 +255,10 @@ pub fn input<'a, T>(
     get(a).ok_or_else(|| StageError::input(port, format!("got a {}", a.kind())))
 }
 
+/// What a stage's preflight prepared for its run (the typed parameters and the stage's plan),
+/// held by the engine between planning and running.
+pub type Prepared = Arc<dyn Any + Send + Sync>;
+
 /// The object-safe stage interface the engine uses.
 pub trait Stage: Send + Sync {
     fn info(&self) -> &StageInfo;
@@ -220,14 +268,17 @@ pub trait Stage: Send + Sync {
     /// converted to SI), which is what the cache key hashes.
     fn normalize_params(&self, params: &serde_json::Value)
         -> Result<serde_json::Value, StageError>;
+    /// Checks parameters (canonical JSON) and input metadata; announces the outputs and the
+    /// memory needed, and prepares what `run` consumes.
     fn preflight(
         &self,
         params: &serde_json::Value,
         inputs: &InputMetas,
-    ) -> Result<Preflight, StageError>;
+    ) -> Result<(Preflight, Prepared), StageError>;
     fn run(
         &self,
         params: &serde_json::Value,
+        prepared: &Prepared,
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError>;
@@ -235,18 +286,24 @@ pub trait Stage: Send + Sync {
 
 /// The typed interface stage authors implement.
 pub trait TypedStage: Send + Sync + 'static {
-    /// `#[serde(deny_unknown_fields, default)]` struct with `Default` giving the defaults.
-    type Params: Serialize + DeserializeOwned + Default + Send + Sync;
+    /// A struct declared with `#[params]`.
+    type Params: Params;
+    /// What preflight works out and run needs again (a parsed file, a built geometry);
+    /// `()` when there is nothing to carry over.
+    type Plan: Send + Sync + 'static;
+    /// Id, version, doc and ports; the parameters come from `Params`.
     fn info(&self) -> StageInfo;
-    /// Checks parameter values and input shapes without allocating anything large.
+    /// Checks parameter values and input shapes without allocating anything large, and
+    /// announces the outputs (with grids, boxes and counts where they are known).
     fn preflight(
         &self,
         params: &Self::Params,
         inputs: &InputMetas,
-    ) -> Result<Preflight, StageError>;
+    ) -> Result<Preflight<Self::Plan>, StageError>;
     fn run(
         &self,
         params: &Self::Params,
+        plan: &Self::Plan,
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError>;
@@ -260,11 +317,24 @@ pub struct Typed<T: TypedStage> {
 
 impl<T: TypedStage> Typed<T> {
     pub fn new(inner: T) -> Self {
-        let info = inner.info();
+        let mut info = inner.info();
+        debug_assert!(
+            info.params.is_empty(),
+            "{}: parameters come from the Params declaration",
+            info.id
+        );
+        info.params = T::Params::specs();
         Typed { inner, info }
     }
 
+    /// Checks the keys against the declaration, then deserializes.
     fn parse(&self, params: &serde_json::Value) -> Result<T::Params, StageError> {
+        if let Some(u) = unknown_keys(params, &self.info.params).into_iter().next() {
+            return Err(StageError::UnknownParam {
+                key: u.key,
+                suggestion: u.suggestion,
+            });
+        }
         serde_path_to_error::deserialize(params).map_err(|e| {
             let path = e.path().to_string();
             let inner = e.into_inner().to_string();
@@ -306,17 +376,32 @@ impl<T: TypedStage> Stage for Typed<T> {
         &self,
         params: &serde_json::Value,
         inputs: &InputMetas,
-    ) -> Result<Preflight, StageError> {
+    ) -> Result<(Preflight, Prepared), StageError> {
         let p = self.parse(params)?;
-        self.inner.preflight(&p, inputs)
+        let pf = self.inner.preflight(&p, inputs)?;
+        let plan = pf.plan;
+        let pf = Preflight {
+            outputs: pf.outputs,
+            memory_bytes: pf.memory_bytes,
+            plan: (),
+        };
+        Ok((pf, Arc::new((p, plan))))
     }
     fn run(
         &self,
-        params: &serde_json::Value,
+        _params: &serde_json::Value,
+        prepared: &Prepared,
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let p = self.parse(params)?;
-        self.inner.run(&p, inputs, ctx)
+        let (p, plan) = prepared
+            .downcast_ref::<(T::Params, T::Plan)>()
+            .ok_or_else(|| {
+                StageError::failed(format!(
+                    "internal error: `{}` ran without its own preflight",
+                    self.info.id
+                ))
+            })?;
+        self.inner.run(p, plan, inputs, ctx)
     }
 }

@@ -235,36 +235,39 @@ pub trait Dim {
     const DIM: Dimension;
     /// Unit shown in `pipe describe` and error messages.
     const SI_UNIT: &'static str;
+    /// What the quantity is, in words, as `pipe describe` names its type.
+    const NAME: &'static str;
 }
 
 macro_rules! dims {
-    ($($name:ident = $exp:expr, $unit:expr;)*) => {$(
+    ($($name:ident = $exp:expr, $unit:expr, $word:expr;)*) => {$(
         #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
         pub struct $name;
         impl Dim for $name {
             const DIM: Dimension = Dimension($exp);
             const SI_UNIT: &'static str = $unit;
+            const NAME: &'static str = $word;
         }
     )*};
 }
 
 dims! {
-    Dimensionless = [0, 0, 0, 0, 0, 0, 0], "1";
-    Length = [1, 0, 0, 0, 0, 0, 0], "m";
-    Area = [2, 0, 0, 0, 0, 0, 0], "m^2";
-    Volume = [3, 0, 0, 0, 0, 0, 0], "m^3";
-    Mass = [0, 1, 0, 0, 0, 0, 0], "kg";
-    Time = [0, 0, 1, 0, 0, 0, 0], "s";
-    Temperature = [0, 0, 0, 1, 0, 0, 0], "K";
-    Velocity = [1, 0, -1, 0, 0, 0, 0], "m/s";
-    Pressure = [-1, 1, -2, 0, 0, 0, 0], "Pa";
-    Power = [2, 1, -3, 0, 0, 0, 0], "W";
-    Energy = [2, 1, -2, 0, 0, 0, 0], "J";
-    Density = [-3, 1, 0, 0, 0, 0, 0], "kg/m^3";
-    SpecificHeat = [2, 0, -2, -1, 0, 0, 0], "J/(kg K)";
-    SpecificEnergy = [2, 0, -2, 0, 0, 0, 0], "J/kg";
-    Conductance = [2, 1, -3, -1, 0, 0, 0], "W/K";
-    Viscosity = [-1, 1, -1, 0, 0, 0, 0], "Pa s";
+    Dimensionless = [0, 0, 0, 0, 0, 0, 0], "1", "number";
+    Length = [1, 0, 0, 0, 0, 0, 0], "m", "length";
+    Area = [2, 0, 0, 0, 0, 0, 0], "m^2", "area";
+    Volume = [3, 0, 0, 0, 0, 0, 0], "m^3", "volume";
+    Mass = [0, 1, 0, 0, 0, 0, 0], "kg", "mass";
+    Time = [0, 0, 1, 0, 0, 0, 0], "s", "time";
+    Temperature = [0, 0, 0, 1, 0, 0, 0], "K", "temperature";
+    Velocity = [1, 0, -1, 0, 0, 0, 0], "m/s", "speed";
+    Pressure = [-1, 1, -2, 0, 0, 0, 0], "Pa", "pressure or stress";
+    Power = [2, 1, -3, 0, 0, 0, 0], "W", "power";
+    Energy = [2, 1, -2, 0, 0, 0, 0], "J", "energy";
+    Density = [-3, 1, 0, 0, 0, 0, 0], "kg/m^3", "density";
+    SpecificHeat = [2, 0, -2, -1, 0, 0, 0], "J/(kg K)", "specific heat";
+    SpecificEnergy = [2, 0, -2, 0, 0, 0, 0], "J/kg", "specific energy";
+    Conductance = [2, 1, -3, -1, 0, 0, 0], "W/K", "thermal conductance";
+    Viscosity = [-1, 1, -1, 0, 0, 0, 0], "Pa s", "dynamic viscosity";
 }
 
 /// A value of dimension `D`, stored in SI. Deserializes from a number (SI) or a unit string.

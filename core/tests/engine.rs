@@ -4,60 +4,54 @@
 use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
 use grainpipe_core::pipeline::{ErrorClass, PipelineDoc};
 use grainpipe_core::{
-    Artifact, ArtifactKind, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, Registry,
-    RunContext, StageError, StageInfo, Table, TypedStage,
+    params, Artifact, ArtifactKind, ArtifactMeta, InputMetas, Inputs, Outputs, PortSpec,
+    Preflight, Registry, RunContext, StageError, StageInfo, Table, TypedStage,
 };
 use rand::RngExt;
-use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-#[derive(Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-struct SourceParams {
-    n: usize,
+/// Parameters shared by the test stages, to check that a flattened group keeps its keys.
+#[params]
+struct Noise {
+    /// Fail at run time.
     fail: bool,
 }
-impl Default for SourceParams {
-    fn default() -> Self {
-        SourceParams { n: 4, fail: false }
-    }
+
+#[params]
+struct SourceParams {
+    /// Count.
+    #[param(default = 4)]
+    n: usize,
+    #[param(flatten)]
+    noise: Noise,
 }
 
 /// Gives `n` uniform random numbers from the stage's stream.
 struct Source;
 impl TypedStage for Source {
     type Params = SourceParams;
+    type Plan = ();
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "test.source",
-            version: "1",
-            doc: "random numbers",
-            params: vec![
-                ParamSpec {
-                    name: "n",
-                    ty: "integer",
-                    unit: "",
-                    doc: "count",
-                },
-                ParamSpec {
-                    name: "fail",
-                    ty: "bool",
-                    unit: "",
-                    doc: "fail at run time",
-                },
-            ],
-            inputs: vec![],
-            outputs: vec![PortSpec::new("table", ArtifactKind::Table, "numbers")],
-        }
+        StageInfo::new("test.source", "1", "random numbers")
+            .outputs(vec![PortSpec::new("table", ArtifactKind::Table, "numbers")])
     }
     fn preflight(&self, p: &SourceParams, _: &InputMetas) -> Result<Preflight, StageError> {
         if p.n == 0 {
             return Err(StageError::param("n", "must be positive"));
         }
-        Ok(Preflight::from_info(&self.info(), (p.n * 8) as u64))
+        Ok(Preflight::from_info(&self.info(), (p.n * 8) as u64).announce(
+            "table",
+            ArtifactMeta::of(ArtifactKind::Table).with_count(p.n as u64, Some([p.n as u64; 2])),
+        ))
     }
-    fn run(&self, p: &SourceParams, _: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
-        if p.fail {
+    fn run(
+        &self,
+        p: &SourceParams,
+        _: &(),
+        _: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        if p.noise.fail {
             return Err(StageError::failed(
                 "diverged after 3 iterations (residual 1e3)",
             ));
@@ -73,40 +67,39 @@ impl TypedStage for Source {
     }
 }
 
-#[derive(Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[params]
 struct ScaleParams {
+    /// Factor.
+    #[param(default = 2.0)]
     factor: f64,
-}
-impl Default for ScaleParams {
-    fn default() -> Self {
-        ScaleParams { factor: 2.0 }
-    }
+    /// Claim one row more than the input has (a stage whose preflight lies).
+    lie: bool,
 }
 
 /// Multiplies a table's first column.
 struct Scale;
 impl TypedStage for Scale {
     type Params = ScaleParams;
+    type Plan = ();
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "test.scale",
-            version: "1",
-            doc: "scales",
-            params: vec![ParamSpec {
-                name: "factor",
-                ty: "number",
-                unit: "",
-                doc: "factor",
-            }],
-            inputs: vec![PortSpec::new("table", ArtifactKind::Table, "in")],
-            outputs: vec![PortSpec::new("table", ArtifactKind::Table, "out")],
+        StageInfo::new("test.scale", "1", "scales")
+            .inputs(vec![PortSpec::new("table", ArtifactKind::Table, "in")])
+            .outputs(vec![PortSpec::new("table", ArtifactKind::Table, "out")])
+    }
+    fn preflight(&self, p: &ScaleParams, i: &InputMetas) -> Result<Preflight, StageError> {
+        let mut meta = i["table"].clone();
+        if let (true, Some([lo, hi])) = (p.lie, meta.count_bounds) {
+            meta.count_bounds = Some([lo + 1, hi + 1]);
         }
+        Ok(Preflight::from_info(&self.info(), 0).announce("table", meta))
     }
-    fn preflight(&self, _: &ScaleParams, _: &InputMetas) -> Result<Preflight, StageError> {
-        Ok(Preflight::from_info(&self.info(), 0))
-    }
-    fn run(&self, p: &ScaleParams, i: &Inputs, _: &RunContext) -> Result<Outputs, StageError> {
+    fn run(
+        &self,
+        p: &ScaleParams,
+        _: &(),
+        i: &Inputs,
+        _: &RunContext,
+    ) -> Result<Outputs, StageError> {
         let t = grainpipe_core::input(i, "table", Artifact::as_table)?;
         let v: Vec<f64> = t
             .f64_column("x")
@@ -123,10 +116,60 @@ impl TypedStage for Scale {
     }
 }
 
+#[params]
+struct ReadParams {
+    /// A text file of numbers, one per line.
+    #[param(file)]
+    path: String,
+}
+
+/// Reads numbers from a file; parses it once, in preflight, and hands the values to `run`.
+struct ReadNumbers;
+impl TypedStage for ReadNumbers {
+    type Params = ReadParams;
+    type Plan = Vec<f64>;
+    fn info(&self) -> StageInfo {
+        StageInfo::new("test.read", "1", "reads numbers from a file")
+            .outputs(vec![PortSpec::new("table", ArtifactKind::Table, "numbers")])
+    }
+    fn preflight(&self, p: &ReadParams, _: &InputMetas) -> Result<Preflight<Vec<f64>>, StageError> {
+        let text = std::fs::read_to_string(&p.path)
+            .map_err(|e| StageError::param("path", format!("cannot read `{}`: {e}", p.path)))?;
+        let values = text
+            .lines()
+            .filter(|l| !l.trim().is_empty())
+            .map(|l| l.trim().parse::<f64>())
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| StageError::param("path", e.to_string()))?;
+        let n = values.len() as u64;
+        Ok(Preflight::from_info(&self.info(), 0)
+            .announce(
+                "table",
+                ArtifactMeta::of(ArtifactKind::Table).with_count(n, Some([n, n])),
+            )
+            .with_plan(values))
+    }
+    fn run(
+        &self,
+        _: &ReadParams,
+        values: &Vec<f64>,
+        _: &Inputs,
+        _: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let mut o = Outputs::new();
+        o.insert(
+            "table".into(),
+            Artifact::Table(Table::new("x").with_f64("x", "1", values.clone())),
+        );
+        Ok(o)
+    }
+}
+
 fn registry() -> Registry {
     let mut r = Registry::new();
     r.add_stage(Source);
     r.add_stage(Scale);
+    r.add_stage(ReadNumbers);
     r.check_consistency().unwrap();
     r
 }
@@ -321,4 +364,68 @@ fn duplicate_step_ids_are_refused() {
         .unwrap();
     assert_eq!(e.loc.unwrap().line, 5);
     assert!(e.message.contains("used twice"));
+}
+
+#[test]
+fn cache_key_follows_the_content_of_input_files_not_their_path() {
+    let cache = tempfile::tempdir().unwrap();
+    let data = tempfile::tempdir().unwrap();
+    let file = data.path().join("numbers.txt");
+    std::fs::write(&file, "1\n2\n").unwrap();
+    let reg = registry();
+    let opts = RunOptions {
+        cache_dir: Some(cache.path().to_path_buf()),
+    };
+    let yaml = format!(
+        "name: t\nstages:\n  - id: read\n    use: test.read\n    with: {{path: {:?}}}\n",
+        file.display().to_string()
+    );
+    let run = || {
+        let d = doc(&yaml);
+        let p = plan(&d, &reg, &PlanOptions::default()).unwrap();
+        execute(&d, &p, &opts, &mut SilentObserver).unwrap()
+    };
+    let first = run();
+    assert_eq!(column(&first, "read"), vec![1.0, 2.0]);
+    assert!(run().stats["read"].from_cache);
+    // Same path, same size, new content: the stale result must not be reused.
+    std::fs::write(&file, "3\n4\n").unwrap();
+    let edited = run();
+    assert!(!edited.stats["read"].from_cache);
+    assert_eq!(column(&edited, "read"), vec![3.0, 4.0]);
+    // Back to the first content: the first entry is valid again.
+    std::fs::write(&file, "1\n2\n").unwrap();
+    let back = run();
+    assert!(back.stats["read"].from_cache);
+    assert_eq!(column(&back, "read"), vec![1.0, 2.0]);
+}
+
+#[test]
+fn a_stage_whose_run_contradicts_its_preflight_fails_with_an_internal_error() {
+    let d = doc(&CHAIN.replace("with: {factor: 3}", "with: {factor: 3, lie: true}"));
+    let p = plan(&d, &registry(), &PlanOptions::default()).unwrap();
+    let e = execute(&d, &p, &RunOptions { cache_dir: None }, &mut SilentObserver)
+        .err()
+        .unwrap();
+    assert!(
+        e.message.contains("internal error in stage `test.scale`")
+            && e.message.contains("announced between 5 and 5 items but gave 4"),
+        "{e}"
+    );
+}
+
+#[test]
+fn keys_of_a_flattened_group_are_accepted_and_typos_still_refused() {
+    let reg = registry();
+    let info = reg.stage("test.source").unwrap().stage.info().clone();
+    let names: Vec<&str> = info.params.iter().map(|p| p.name).collect();
+    assert_eq!(names, ["n", "fail"]);
+    assert_eq!(info.params[0].default, serde_json::json!(4));
+    assert_eq!(info.params[0].ty, "integer");
+    assert_eq!(info.params[1].ty, "true or false");
+    let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {n: 2, fial: true}\n");
+    let e = plan(&d, &reg, &PlanOptions::default()).err().unwrap();
+    assert!(e.message.contains("unknown parameter `fial`"), "{e}");
+    assert_eq!(e.help.as_deref(), Some("did you mean `fail`?"));
+    assert_eq!(e.loc.unwrap().line, 5);
 }
