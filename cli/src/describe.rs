@@ -1,8 +1,10 @@
 //! `pipe list` and `pipe describe`: text generated from the registry, so the README's stage
 //! list (made with `pipe list --markdown`) cannot drift from the code.
 
+use grainpipe_core::params::object_schema;
 use grainpipe_core::registry::Registered;
 use grainpipe_core::Registry;
+use serde_json::{json, Value};
 use std::fmt::Write;
 
 /// First sentence of a doc paragraph: up to the first ". " followed by a capital letter that
@@ -130,13 +132,18 @@ fn describe_stage(x: &Registered) -> String {
             .get(p.name)
             .map(|v| v.to_string())
             .unwrap_or_default();
-        let unit = if p.unit.is_empty() || p.unit == "1" {
+        let unit = if p.unit.is_empty() {
             String::new()
         } else {
             format!(" [{}]", p.unit)
         };
-        writeln!(s, "  {}: {}{}  (default {})", p.name, p.ty, unit, d).unwrap();
-        writeln!(s, "      {}", p.doc).unwrap();
+        let file = if p.reads_file {
+            "; an input file, the cache follows its content"
+        } else {
+            ""
+        };
+        writeln!(s, "  {}: {}{}  (default {}{file})", p.name, p.ty, unit, d).unwrap();
+        writeln!(s, "      {}", textwrap(p.doc, 84).replace('\n', "\n      ")).unwrap();
     }
     writeln!(s, "\nInputs (YAML `in:`):").unwrap();
     if i.inputs.is_empty() {
@@ -171,6 +178,104 @@ fn textwrap(text: &str, width: usize) -> String {
     out
 }
 
+fn ports_json(ports: &[grainpipe_core::PortSpec]) -> Value {
+    Value::Array(
+        ports
+            .iter()
+            .map(|p| {
+                json!({"name": p.name, "kind": p.kind.to_string(), "doc": p.doc,
+                       "optional": p.optional})
+            })
+            .collect(),
+    )
+}
+
+/// A stage's self-description as JSON (`pipe describe --json ID`).
+pub fn stage_json(x: &Registered) -> Value {
+    let i = x.stage.info();
+    json!({
+        "id": i.id,
+        "version": i.version,
+        "origin": x.origin,
+        "doc": i.doc,
+        "params": i.params,
+        "inputs": ports_json(&i.inputs),
+        "outputs": ports_json(&i.outputs),
+        "with_schema": object_schema(&i.params),
+    })
+}
+
+/// Every stage and export format as JSON (`pipe describe --json` without an id).
+pub fn registry_json(r: &Registry) -> Value {
+    json!({
+        "grainpipe_version": grainpipe_core::VERSION,
+        "stages": r.stages().into_iter().map(stage_json).collect::<Vec<_>>(),
+        "export_formats": r.exporters().iter().map(|e| json!({
+            "name": e.name(), "extensions": e.extensions(), "doc": e.doc()
+        })).collect::<Vec<_>>(),
+    })
+}
+
+/// JSON Schema (draft 2020-12) of a pipeline file with the stages of this registry: editors
+/// (VS Code's YAML extension, via `# yaml-language-server: $schema=...`) complete and check
+/// `use:` ids and each stage's `with:` keys, types and defaults.
+pub fn pipeline_schema(r: &Registry) -> Value {
+    let ids: Vec<&str> = r.stages().iter().map(|x| x.stage.info().id).collect();
+    let per_stage: Vec<Value> = r
+        .stages()
+        .iter()
+        .map(|x| {
+            let i = x.stage.info();
+            json!({
+                "if": {"properties": {"use": {"const": i.id}}, "required": ["use"]},
+                "then": {"properties": {"with": object_schema(&i.params)}}
+            })
+        })
+        .collect();
+    let formats: Vec<&str> = r.exporters().iter().map(|e| e.name()).collect();
+    json!({
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "grainpipe pipeline",
+        "type": "object",
+        "required": ["name", "stages"],
+        "additionalProperties": false,
+        "properties": {
+            "name": {"type": "string", "description": "pipeline name (recorded in every output)"},
+            "description": {"type": "string"},
+            "seed": {"type": "integer", "minimum": 0, "description": "pipeline seed; each step derives its own stream from it and its id"},
+            "plugins": {"type": "array", "items": {"type": "string"}, "description": "plugin libraries or directories to load"},
+            "stages": {
+                "type": "array",
+                "items": {
+                    "type": "object",
+                    "required": ["id", "use"],
+                    "additionalProperties": false,
+                    "properties": {
+                        "id": {"type": "string", "pattern": "^[^.]+$"},
+                        "use": {"enum": ids},
+                        "in": {"type": "object", "additionalProperties": {"type": "string"}},
+                        "with": {"type": "object"}
+                    },
+                    "allOf": per_stage
+                }
+            },
+            "export": {
+                "type": "array",
+                "items": {
+                    "type": "object",
+                    "required": ["from", "to"],
+                    "additionalProperties": false,
+                    "properties": {
+                        "from": {"type": "string", "description": "step or step.port"},
+                        "to": {"type": "string", "description": "output path; the extension selects the format"},
+                        "format": {"enum": formats}
+                    }
+                }
+            }
+        }
+    })
+}
+
 /// The full description of a stage or export format; `Err` with suggestions if unknown.
 pub fn describe(r: &Registry, id: &str) -> Result<String, String> {
     if let Some(x) = r.stage(id) {
@@ -191,4 +296,52 @@ pub fn describe(r: &Registry, id: &str) -> Result<String, String> {
     Err(format!(
         "no stage or format `{id}`{hint} (`pipe list` shows all)"
     ))
+}
+
+/// What preflight announced about an output, in a line (`pipe validate`); `None` when
+/// nothing beyond its kind is known.
+pub fn announced(m: &grainpipe_core::ArtifactMeta) -> Option<String> {
+    let mut parts = Vec::new();
+    if let Some(g) = &m.grid {
+        let per: String = ["x", "y", "z"]
+            .iter()
+            .zip(g.periodic)
+            .filter(|(_, p)| *p)
+            .map(|(a, _)| *a)
+            .collect();
+        parts.push(format!(
+            "grid {}x{}x{} of {:.4} x {:.4} x {:.4} um{}",
+            g.dims[0],
+            g.dims[1],
+            g.dims[2],
+            g.spacing[0] * 1e6,
+            g.spacing[1] * 1e6,
+            g.spacing[2] * 1e6,
+            if per.is_empty() {
+                String::new()
+            } else {
+                format!(", periodic in {per}")
+            }
+        ));
+    }
+    if let Some((lo, hi)) = m.domain_box {
+        parts.push(format!(
+            "box {:.1} x {:.1} x {:.1} um",
+            (hi[0] - lo[0]) * 1e6,
+            (hi[1] - lo[1]) * 1e6,
+            (hi[2] - lo[2]) * 1e6
+        ));
+    }
+    if let (Some(p), None) = (m.periodic, &m.grid) {
+        parts.push(format!("periodic {p:?}"));
+    }
+    match m.count_bounds {
+        Some([lo, hi]) if lo == hi => parts.push(format!("{lo} items")),
+        Some([lo, hi]) => parts.push(format!("{lo}..{hi} items")),
+        None if m.count_estimate > 0 && m.grid.is_none() => {
+            parts.push(format!("~{} items", m.count_estimate))
+        }
+        None => {}
+    }
+    (!parts.is_empty()).then(|| format!("{} ({})", m.kind, parts.join(", ")))
 }

@@ -77,7 +77,15 @@ enum Command {
         markdown: bool,
     },
     /// Describe a stage (parameters, defaults, units, ports) or an export format.
-    Describe { id: String },
+    Describe {
+        /// Stage id or export format (all of them with --json when omitted).
+        id: Option<String>,
+        /// Machine-readable JSON (parameters with types, units, defaults and JSON Schema).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print the JSON Schema of pipeline files (for editors and validators).
+    Schema,
 }
 
 fn main() -> ExitCode {
@@ -99,16 +107,32 @@ fn main() -> ExitCode {
             }
             ExitCode::SUCCESS
         }
-        Command::Describe { id } => match describe::describe(&registry, &id) {
-            Ok(text) => {
-                print!("{text}");
-                ExitCode::SUCCESS
+        Command::Describe { id, json } => {
+            let out = match (id, json) {
+                (None, true) => Ok(json_text(&describe::registry_json(&registry))),
+                (None, false) => Err("name a stage or format, or use --json for all".to_string()),
+                (Some(id), true) => match registry.stage(&id) {
+                    Some(x) => Ok(json_text(&describe::stage_json(x))),
+                    None => describe::describe(&registry, &id)
+                        .and_then(|_| Err(format!("`{id}` is an export format; --json describes stages"))),
+                },
+                (Some(id), false) => describe::describe(&registry, &id),
+            };
+            match out {
+                Ok(text) => {
+                    print!("{text}");
+                    ExitCode::SUCCESS
+                }
+                Err(e) => {
+                    eprintln!("error: {e}");
+                    ExitCode::from(2)
+                }
             }
-            Err(e) => {
-                eprintln!("error: {e}");
-                ExitCode::from(2)
-            }
-        },
+        }
+        Command::Schema => {
+            print!("{}", json_text(&describe::pipeline_schema(&registry)));
+            ExitCode::SUCCESS
+        }
         Command::Validate { pipeline } => {
             let (doc, plan) = match load_and_plan(&pipeline, &mut registry, &mut loader) {
                 Ok(x) => x,
@@ -128,6 +152,11 @@ fn main() -> ExitCode {
                     s.stage.info().id,
                     engine::human_bytes(s.preflight.memory_bytes)
                 );
+                for (port, meta) in &s.preflight.outputs {
+                    if let Some(what) = describe::announced(meta) {
+                        println!("      {port}: {what}");
+                    }
+                }
             }
             for e in &plan.exports {
                 println!("  -> {} ({})", e.path.display(), e.exporter.name());
@@ -181,6 +210,13 @@ fn main() -> ExitCode {
             }
         }
     }
+}
+
+fn json_text(v: &serde_json::Value) -> String {
+    format!(
+        "{}\n",
+        serde_json::to_string_pretty(v).expect("JSON values serialize")
+    )
 }
 
 fn load_and_plan(

@@ -87,6 +87,73 @@ impl FieldData {
     }
 }
 
+/// What the components of a [`Field`] mean, so a strain field is not read as six scalars
+/// and Voigt is not mistaken for Mandel.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ComponentConvention {
+    /// One scalar, or components without a stated meaning.
+    #[default]
+    Plain,
+    /// A vector: (x, y, z), or (x, y) on a 2-D grid.
+    Vector,
+    /// A symmetric second-order tensor in Voigt order (xx, yy, zz, yz, xz, xy), no factors;
+    /// (xx, yy, xy) on a 2-D grid.
+    Voigt,
+    /// The same order with the shear components scaled by sqrt 2 (Mandel).
+    Mandel,
+    /// A full second-order tensor, row-major (xx, xy, xz, yx, yy, yz, zx, zy, zz).
+    Tensor,
+}
+
+impl ComponentConvention {
+    /// The name written into files (`plain`, `vector`, `voigt`, `mandel`, `tensor`).
+    pub fn name(self) -> &'static str {
+        match self {
+            ComponentConvention::Plain => "plain",
+            ComponentConvention::Vector => "vector",
+            ComponentConvention::Voigt => "voigt",
+            ComponentConvention::Mandel => "mandel",
+            ComponentConvention::Tensor => "tensor",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Self> {
+        [
+            ComponentConvention::Plain,
+            ComponentConvention::Vector,
+            ComponentConvention::Voigt,
+            ComponentConvention::Mandel,
+            ComponentConvention::Tensor,
+        ]
+        .into_iter()
+        .find(|c| c.name() == name)
+    }
+
+    /// Component names for `n` components on a grid with `nz` layers, or `None` when the
+    /// count does not fit the convention.
+    pub fn component_names(self, n: usize, nz: usize) -> Option<Vec<String>> {
+        let names: &[&str] = match (self, n, nz == 1) {
+            (ComponentConvention::Plain, _, _) => {
+                return Some((0..n).map(|k| format!("c{k}")).collect())
+            }
+            (ComponentConvention::Vector, 3, _) => &["x", "y", "z"],
+            (ComponentConvention::Vector, 2, true) => &["x", "y"],
+            (ComponentConvention::Voigt | ComponentConvention::Mandel, 6, _) => {
+                &["xx", "yy", "zz", "yz", "xz", "xy"]
+            }
+            (ComponentConvention::Voigt | ComponentConvention::Mandel, 3, true) => {
+                &["xx", "yy", "xy"]
+            }
+            (ComponentConvention::Tensor, 9, _) => {
+                &["xx", "xy", "xz", "yx", "yy", "yz", "zx", "zy", "zz"]
+            }
+            (ComponentConvention::Tensor, 4, true) => &["xx", "xy", "yx", "yy"],
+            _ => return None,
+        };
+        Some(names.iter().map(|s| s.to_string()).collect())
+    }
+}
+
 /// A voxel field with `components` values per voxel (component fastest).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Field {
@@ -95,7 +162,55 @@ pub struct Field {
     /// SI unit string, e.g. "K" or "Pa".
     pub unit: String,
     pub components: usize,
+    /// What the components mean.
+    pub convention: ComponentConvention,
     pub data: FieldData,
+}
+
+impl Field {
+    /// A field of `data.len() / voxels` components with the given meaning; checks the length
+    /// and that the component count fits the convention.
+    pub fn new(
+        grid: Grid,
+        name: impl Into<String>,
+        unit: impl Into<String>,
+        convention: ComponentConvention,
+        data: FieldData,
+    ) -> Result<Field, String> {
+        let name = name.into();
+        let voxels = grid.voxel_count().max(1);
+        if data.len() % voxels != 0 || data.is_empty() {
+            return Err(format!(
+                "field `{name}`: {} values do not fill {voxels} voxels evenly",
+                data.len()
+            ));
+        }
+        let components = data.len() / voxels;
+        if convention
+            .component_names(components, grid.dims[2])
+            .is_none()
+        {
+            return Err(format!(
+                "field `{name}`: {components} components do not fit the {} convention",
+                convention.name()
+            ));
+        }
+        Ok(Field {
+            grid,
+            name,
+            unit: unit.into(),
+            components,
+            convention,
+            data,
+        })
+    }
+
+    /// Names of the components (`x`, `y`, `z`; `xx`, ...; `c0`, ... for plain fields).
+    pub fn component_names(&self) -> Vec<String> {
+        self.convention
+            .component_names(self.components, self.grid.dims[2])
+            .unwrap_or_else(|| (0..self.components).map(|k| format!("c{k}")).collect())
+    }
 }
 
 /// One sphere of a clump, relative to the clump's centroid in its body frame [m].
@@ -471,6 +586,28 @@ pub struct Series {
     pub frames: Vec<(f64, Artifact)>,
 }
 
+/// Named artifacts that belong together but are not a time series: the grains of a sample,
+/// the realizations of an ensemble, the load cases of a homogenization. (A [`Series`] is
+/// ordered by physical time; a collection by item.)
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Collection {
+    /// (name, item), in order.
+    pub items: Vec<(String, Artifact)>,
+}
+
+impl Collection {
+    pub fn len(&self) -> usize {
+        self.items.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.items.is_empty()
+    }
+    /// The item called `name`.
+    pub fn get(&self, name: &str) -> Option<&Artifact> {
+        self.items.iter().find(|(n, _)| n == name).map(|(_, a)| a)
+    }
+}
+
 /// Anything a stage takes or gives.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Artifact {
@@ -482,6 +619,7 @@ pub enum Artifact {
     Table(Table),
     Tensor(Tensor),
     Series(Series),
+    Collection(Collection),
 }
 
 /// The kind of an [`Artifact`], used to type-check pipelines before anything runs.
@@ -495,6 +633,7 @@ pub enum ArtifactKind {
     Table,
     Tensor,
     Series,
+    Collection,
 }
 
 impl fmt::Display for ArtifactKind {
@@ -514,6 +653,7 @@ impl Artifact {
             Artifact::Table(_) => ArtifactKind::Table,
             Artifact::Tensor(_) => ArtifactKind::Tensor,
             Artifact::Series(_) => ArtifactKind::Series,
+            Artifact::Collection(_) => ArtifactKind::Collection,
         }
     }
 }
@@ -542,6 +682,7 @@ artifact_accessors! {
     as_table => Table,
     as_tensor => Tensor,
     as_series => Series,
+    as_collection => Collection,
 }
 
 /// What preflight knows about an artifact before it exists: its kind, and whatever the
@@ -618,6 +759,7 @@ impl ArtifactMeta {
             Artifact::Table(x) => x.rows(),
             Artifact::Tensor(x) => x.values.len(),
             Artifact::Series(x) => x.frames.len(),
+            Artifact::Collection(x) => x.items.len(),
         }) as u64
     }
 

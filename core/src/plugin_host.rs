@@ -573,7 +573,8 @@ impl Marshalled {
                     FieldData::F64(v) => Buf::F64(v.clone()),
                 };
                 (
-                    json!({"grid": f.grid, "name": f.name, "unit": f.unit, "components": f.components}),
+                    json!({"grid": f.grid, "name": f.name, "unit": f.unit, "components": f.components,
+                           "convention": f.convention.name()}),
                     vec![NamedArray::new("data", shape, data)],
                 )
             }
@@ -731,11 +732,27 @@ fn unmarshal(kind: ArtifactKind, p: &PendingOutput) -> Result<Artifact, String> 
                     .unwrap_or("")
                     .to_string()
             };
+            // Plugins that do not state a convention give plain components.
+            let convention = match meta.get("convention").and_then(Value::as_str) {
+                None => ComponentConvention::Plain,
+                Some(c) => ComponentConvention::from_name(c).ok_or_else(|| {
+                    format!(
+                        "unknown component convention `{c}` (plain, vector, voigt, mandel, tensor)"
+                    )
+                })?,
+            };
+            if convention.component_names(components, grid.dims[2]).is_none() {
+                return Err(format!(
+                    "{components} components do not fit the `{}` convention",
+                    convention.name()
+                ));
+            }
             Artifact::Field(Field {
                 grid,
                 name: s("name"),
                 unit: s("unit"),
                 components,
+                convention,
                 data,
             })
         }

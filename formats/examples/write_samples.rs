@@ -89,6 +89,7 @@ fn field() -> Field {
         name: "velocity".into(),
         unit: "m/s".into(),
         components: 3,
+        convention: ComponentConvention::Vector,
         data: FieldData::F64(data),
     }
 }

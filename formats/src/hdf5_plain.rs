@@ -20,6 +20,8 @@
 //! - Table: group `table` (attribute `name`, `column_order`), one dataset per column with
 //!   attributes `unit` and `name`;
 //! - Tensor: dataset `tensor` of the tensor's shape with `name`, `unit`, `convention`;
+//! - Collection: group `items` with one group per item (`0000`, ...) with attribute `name`,
+//!   holding that item's layout
 //! - Series: group `frames` with one group per frame (`0000`, ...) holding that frame's layout
 //!   and a `time` attribute [s].
 
@@ -68,6 +70,15 @@ fn write_into(g: &Group, a: &Artifact) -> H5Result<()> {
             }
             Ok(())
         }
+        Artifact::Collection(c) => {
+            let items = g.create_group("items")?;
+            for (k, (name, item)) in c.items.iter().enumerate() {
+                let ig = items.create_group(&format!("{k:04}"))?;
+                attr_str(&ig, "name", name)?;
+                write_into(&ig, item)?;
+            }
+            Ok(())
+        }
     }
 }
 
@@ -106,6 +117,12 @@ fn write_volume(g: &Group, v: VolumeRef) -> H5Result<()> {
     attr_str(&ds, "unit", v.unit())?;
     attr_str(&ds, "axis_order", "z y x")?;
     attr_scalar(&ds, "components", v.components() as u64)?;
+    if let VolumeRef::Field(f) = v {
+        attr_str(&ds, "component_convention", f.convention.name())?;
+        let names = f.component_names();
+        let names: Vec<&str> = names.iter().map(String::as_str).collect();
+        attr_strs(&ds, "component_names", &names)?;
+    }
     attr_str(g, "dataset", name)?;
     Ok(())
 }
@@ -321,7 +338,8 @@ typed_reader!(
     read_h5_contact_graph -> ContactGraph,
     read_h5_clump_library -> ClumpLibrary,
     read_h5_tensor -> Tensor,
-    read_h5_series -> Series
+    read_h5_series -> Series,
+    read_h5_collection -> Collection
 );
 
 fn read_from(g: &Group) -> H5Result<Artifact> {
@@ -353,6 +371,18 @@ fn read_from(g: &Group) -> H5Result<Artifact> {
                 out.push((t, read_from(&fg)?));
             }
             Artifact::Series(Series { frames: out })
+        }
+        "Collection" => {
+            let items = g.group("items")?;
+            let mut names = items.member_names()?;
+            names.sort();
+            let mut out = Vec::new();
+            for n in names {
+                let ig = items.group(&n)?;
+                let name = read_attr_str(&ig, "name").unwrap_or(n);
+                out.push((name, read_from(&ig)?));
+            }
+            Artifact::Collection(Collection { items: out })
         }
         k => return Err(err(format!("unknown artifact kind `{k}`"))),
     })
@@ -616,6 +646,9 @@ fn volume_from(g: &Group, name: &str) -> H5Result<Volume> {
         unit: read_attr_str(&ds, "unit").unwrap_or_default(),
         dims,
         components,
+        convention: read_attr_str(&ds, "component_convention")
+            .and_then(|c| ComponentConvention::from_name(&c))
+            .unwrap_or_default(),
         spacing,
         origin: three("origin"),
         periodic,
@@ -636,10 +669,12 @@ crate::vtk_xml::exporter!(
         ContactGraph,
         Table,
         Tensor,
-        Series
+        Series,
+        Collection
     ],
     "plain HDF5: images/fields as (z, y, x) datasets with spacing/origin attributes, packings, \
      clump libraries, contact graphs, tables (one dataset per column with its unit), tensors, \
-     series (one group per frame); provenance as root attributes",
+     series (one group per frame), collections (one named group per item); provenance as root \
+     attributes",
     write_h5
 );

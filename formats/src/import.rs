@@ -1,25 +1,32 @@
-//! Import stages: a volume from a raw file, an HDF5 dataset, a NetCDF variable or a `.vti`
-//! array, as a PhaseImage (`as: phase_image`, labels 0..=255) or a Field (`as: field`).
+//! Import stages: a volume from a raw file, an HDF5 dataset, a NetCDF variable, a `.vti`
+//! array or a TIFF stack, as a PhaseImage (`as: phase_image`, labels 0..=255) or a Field
+//! (`as: field`).
 //!
-//! Preflight opens the file and checks its header (raw: its size) against the declared
-//! layout without reading the array; the array is read in `run`. Relative paths are relative
-//! to the current working directory. Only the output chosen by `as` is produced: `image`
-//! for a phase image, `field` for a field.
+//! Preflight reads only the file's header (raw: its size; TIFF: every page header) through
+//! [`crate::headers`] and announces the exact grid of the output; the header and the grid go
+//! to `run` in the plan, so `run` reads the voxel values and takes the geometry worked out
+//! once. Relative paths are relative to the current working directory. Only the output chosen
+//! by `as` is produced: `image` for a phase image, `field` for a field.
 
+use crate::headers::{hdf5_header, netcdf_header, volume_geometry, vti_header, Header};
 use crate::raw::{probe_raw, read_raw, Endian, RawDtype, RawLayout};
-use crate::volume::{Probe, Volume};
-use crate::{hdf5_plain, netcdf_io, vtk_xml};
+use crate::volume::Volume;
+use crate::{netcdf_io, vtk_xml};
+use grainpipe_core::params::{choice_schema, choice_type_name, serde_word};
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::*;
 use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
 use std::path::Path;
 
 /// What the imported array becomes.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, ParamChoice)]
 #[serde(rename_all = "snake_case")]
 pub enum ImportAs {
+    /// Integer labels 0..=255.
     #[default]
     PhaseImage,
+    /// Values with a unit.
     Field,
 }
 
@@ -40,34 +47,76 @@ impl Lengths3 {
     }
 }
 
-const AS_DOC: &str = "`phase_image` (integer labels 0..=255) or `field`";
-const SPACING_DOC: &str = "voxel size: one length or [x, y, z]; overrides the file's";
-const ORIGIN_DOC: &str = "lower grid corner [x, y, z]; overrides the file's (default 0)";
-const UNIT_DOC: &str = "unit of a field (overrides the file's)";
-const PATH_DOC: &str = "input file (relative to the working directory)";
+impl ParamType for Lengths3 {
+    fn type_name() -> String {
+        "length or [x, y, z]".into()
+    }
+    fn unit() -> &'static str {
+        "m"
+    }
+    fn schema() -> Value {
+        let q = <Q<Length> as ParamType>::schema();
+        json!({"anyOf": [q.clone(), {"type": "array", "items": q, "minItems": 3, "maxItems": 3}]})
+    }
+}
 
-/// The `origin`, `as` and `unit` parameters every import stage ends with.
-fn trailing_specs() -> [ParamSpec; 3] {
+/// Unit-only enums of the raw reader, described as choices by their serde names.
+macro_rules! choice_param {
+    ($t:ty, [$($v:expr),*]) => {
+        impl ParamType for $t {
+            fn type_name() -> String {
+                choice_type_name(&Self::choice_words())
+            }
+            fn schema() -> Value {
+                choice_schema(&Self::choice_words())
+            }
+        }
+        impl ChoiceWords for $t {
+            fn choice_words() -> Vec<(String, &'static str)> {
+                [$($v),*].iter().map(|v| (serde_word(v), "")).collect()
+            }
+        }
+    };
+}
+
+trait ChoiceWords {
+    fn choice_words() -> Vec<(String, &'static str)>;
+}
+
+choice_param!(
+    RawDtype,
     [
-        ParamSpec {
-            name: "origin",
-            ty: "[x, y, z]",
-            unit: "m",
-            doc: ORIGIN_DOC,
-        },
-        ParamSpec {
-            name: "as",
-            ty: "one of: phase_image, field",
-            unit: "",
-            doc: AS_DOC,
-        },
-        ParamSpec {
-            name: "unit",
-            ty: "unit string",
-            unit: "",
-            doc: UNIT_DOC,
-        },
+        RawDtype::U8,
+        RawDtype::U16,
+        RawDtype::I32,
+        RawDtype::F32,
+        RawDtype::F64
     ]
+);
+choice_param!(Endian, [Endian::Little, Endian::Big]);
+
+/// The parameters every import stage ends with: what the array becomes, where its grid
+/// starts and the unit of a field.
+#[params]
+pub struct ImportOptions {
+    /// lower grid corner [x, y, z]; overrides the file's (default 0)
+    #[param(ty = "[x, y, z]")]
+    pub origin: Option<Lengths3>,
+    /// `phase_image` (integer labels 0..=255) or `field`
+    #[serde(rename = "as")]
+    #[param(default = ImportAs::PhaseImage)]
+    pub as_: ImportAs,
+    /// unit of a field (overrides the file's)
+    #[param(ty = "unit string")]
+    pub unit: String,
+}
+
+/// What preflight learned from the file header and run needs: the header (to check the data
+/// read against it) and the output grid (file geometry with the overrides applied).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ImportPlan {
+    pub header: Header,
+    pub grid: Grid,
 }
 
 fn outputs() -> Vec<PortSpec> {
@@ -137,118 +186,129 @@ fn check_lengths(key: &str, v: Option<Lengths3>, positive: bool) -> Result<(), S
     Ok(())
 }
 
-/// Common preflight: checks the probed shape against `as` and estimates memory (the array as
-/// stored plus the output).
+/// Common preflight: checks the header against `as`, works out the output grid (the file's
+/// geometry, overridden by `spacing`/`origin`), estimates memory (the array as stored plus
+/// the output) and announces the selected output on that grid.
 fn preflight_common(
-    probe: Probe,
-    as_: ImportAs,
+    info: &StageInfo,
+    header: Header,
     spacing: Option<Lengths3>,
-    origin: Option<Lengths3>,
-) -> Result<Preflight, StageError> {
+    o: &ImportOptions,
+) -> Result<Preflight<ImportPlan>, StageError> {
+    let h = &header.probe;
     check_lengths("spacing", spacing, true)?;
-    check_lengths("origin", origin, false)?;
-    if as_ == ImportAs::PhaseImage && probe.components != 1 {
+    check_lengths("origin", o.origin, false)?;
+    if o.as_ == ImportAs::PhaseImage && h.components != 1 {
         return Err(StageError::param(
             "as",
             format!(
                 "the array has {} components; a phase image needs one label per voxel (use `as: field`)",
-                probe.components
+                h.components
             ),
         ));
     }
-    let n = probe.dims.iter().product::<usize>() * probe.components;
+    let n = h.dims.iter().product::<usize>() * h.components;
     if n == 0 {
         return Err(StageError::param(
             "path",
-            format!("the array is empty (dims {:?})", probe.dims),
+            format!("the array is empty (dims {:?})", h.dims),
         ));
     }
-    let out_bytes = match as_ {
+    let spacing = spacing.map(|s| s.si()).or(h.spacing).ok_or_else(|| {
+        StageError::param(
+            "spacing",
+            "the file gives no voxel spacing; set `spacing` explicitly",
+        )
+    })?;
+    if spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(StageError::param(
+            "spacing",
+            format!("the file's spacing {spacing:?} m is not three positive lengths; set `spacing` explicitly"),
+        ));
+    }
+    let grid = Grid {
+        dims: h.dims,
+        spacing,
+        origin: o.origin.map(|o| o.si()).or(h.origin).unwrap_or([0.0; 3]),
+        periodic: header.periodic,
+    };
+    let out_bytes = match o.as_ {
         ImportAs::PhaseImage => 1,
-        ImportAs::Field if probe.elem_bytes == 4 && probe.dtype.contains("32") => 4,
+        ImportAs::Field if h.elem_bytes == 4 && h.dtype.contains("32") => 4,
         ImportAs::Field => 8,
     };
-    let spacing = spacing.map(|s| s.si()).or(probe.spacing);
-    let grid = spacing.map(|spacing| Grid {
-        dims: probe.dims,
-        spacing,
-        origin: origin.map(|o| o.si()).or(probe.origin).unwrap_or([0.0; 3]),
-        periodic: [false; 3],
-    });
-    let (name, kind) = port(as_);
-    let mut meta = ArtifactMeta::of(kind);
-    meta.grid = grid;
-    meta.count_estimate = n as u64;
-    Ok(Preflight {
-        outputs: [(name.to_string(), meta)].into_iter().collect(),
-        memory_bytes: (n * (probe.elem_bytes + out_bytes)) as u64,
-    })
+    let (name, kind) = port(o.as_);
+    let mut pf = Preflight::from_info(info, (n * (h.elem_bytes + out_bytes)) as u64);
+    pf.outputs.retain(|k, _| k == name);
+    Ok(pf
+        .announce(name, ArtifactMeta::on_grid(kind, grid.clone()))
+        .with_plan(ImportPlan { header, grid }))
 }
 
-/// Applies overrides and converts.
+/// Checks the volume read against the header preflight read (`geometry`: also the spacing,
+/// origin and periodic axes, for readers that take them from the file), puts it on the
+/// planned grid, applies the unit and converts.
 fn finish(
     mut v: Volume,
+    plan: &ImportPlan,
     path: &str,
-    as_: ImportAs,
-    spacing: Option<Lengths3>,
-    origin: Option<Lengths3>,
-    unit: &str,
+    o: &ImportOptions,
+    geometry: bool,
 ) -> Result<Outputs, StageError> {
-    if let Some(s) = spacing {
-        v.spacing = Some(s.si());
+    let h = &plan.header;
+    let read = volume_geometry(&v);
+    let agrees = if geometry {
+        read == h.geometry()
+    } else {
+        (read.0, read.1) == (h.probe.dims, h.probe.components)
+    };
+    if !agrees {
+        return Err(StageError::failed(format!(
+            "{path}: the data does not match the header read before running (changed since?): \
+             header {:?}, data {read:?}",
+            h.geometry()
+        )));
     }
-    if let Some(o) = origin {
-        v.origin = Some(o.si());
+    v.spacing = Some(plan.grid.spacing);
+    v.origin = Some(plan.grid.origin);
+    v.periodic = plan.grid.periodic;
+    if !o.unit.is_empty() {
+        v.unit = o.unit.clone();
     }
-    if !unit.is_empty() {
-        v.unit = unit.to_string();
-    }
-    let art = match as_ {
+    let art = match o.as_ {
         ImportAs::PhaseImage => v.into_phase_image().map(Artifact::PhaseImage),
         ImportAs::Field => v.into_field().map(Artifact::Field),
     }
     .map_err(|e| StageError::failed(format!("{path}: {e}")))?;
     let mut out = Outputs::new();
-    out.insert(port(as_).0.to_string(), art);
+    out.insert(port(o.as_).0.to_string(), art);
     Ok(out)
-}
-
-fn read_failed(e: String) -> StageError {
-    StageError::failed(e)
 }
 
 // ---------------------------------------------------------------------------------------
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[params]
 pub struct RawParams {
+    /// input file (relative to the working directory)
+    #[param(file, ty = "path")]
     pub path: String,
-    /// [nx, ny, nz].
+    /// voxels along x, y, z
+    #[param(ty = "[nx, ny, nz]")]
     pub dims: [usize; 3],
+    /// element type: u8, u16, i32, f32 or f64
+    // The choice words are the Rust type names the registry's check refuses in a type column.
+    #[param(ty = "element type name", default = RawDtype::U8)]
     pub dtype: RawDtype,
+    /// byte order
+    #[param(default = Endian::Little)]
     pub endian: Endian,
+    /// bytes to skip at the start of the file
     pub header_bytes: u64,
+    /// voxel size (required)
+    #[param(ty = "length or [x, y, z]")]
     pub spacing: Option<Lengths3>,
-    pub origin: Option<Lengths3>,
-    #[serde(rename = "as")]
-    pub as_: ImportAs,
-    pub unit: String,
-}
-
-impl Default for RawParams {
-    fn default() -> Self {
-        RawParams {
-            path: String::new(),
-            dims: [0; 3],
-            dtype: RawDtype::U8,
-            endian: Endian::Little,
-            header_bytes: 0,
-            spacing: None,
-            origin: None,
-            as_: ImportAs::PhaseImage,
-            unit: String::new(),
-        }
-    }
+    #[param(flatten)]
+    pub options: ImportOptions,
 }
 
 impl RawParams {
@@ -266,59 +326,22 @@ pub struct ImportRaw;
 
 impl TypedStage for ImportRaw {
     type Params = RawParams;
+    type Plan = ImportPlan;
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "import.raw",
-            version: "1.0.0",
-            doc: "Reads a headerless raw volume (x fastest, then y, then z) whose dims, element \
-                  type, byte order and voxel size are given here; preflight checks the file size.",
-            params: vec![
-                ParamSpec {
-                    name: "path",
-                    ty: "path",
-                    unit: "",
-                    doc: PATH_DOC,
-                },
-                ParamSpec {
-                    name: "dims",
-                    ty: "[nx, ny, nz]",
-                    unit: "",
-                    doc: "voxels along x, y, z",
-                },
-                ParamSpec {
-                    name: "dtype",
-                    ty: "one of: u8, u16, i32, f32, f64",
-                    unit: "",
-                    doc: "element type",
-                },
-                ParamSpec {
-                    name: "endian",
-                    ty: "one of: little, big",
-                    unit: "",
-                    doc: "byte order",
-                },
-                ParamSpec {
-                    name: "header_bytes",
-                    ty: "integer",
-                    unit: "",
-                    doc: "bytes to skip at the start of the file",
-                },
-                ParamSpec {
-                    name: "spacing",
-                    ty: "length or [x, y, z]",
-                    unit: "m",
-                    doc: "voxel size (required)",
-                },
-            ]
-            .into_iter()
-            .chain(trailing_specs())
-            .collect(),
-            inputs: vec![],
-            outputs: outputs(),
-        }
+        StageInfo::new(
+            "import.raw",
+            "1.0.0",
+            "Reads a headerless raw volume (x fastest, then y, then z) whose dims, element \
+             type, byte order and voxel size are given here; preflight checks the file size.",
+        )
+        .outputs(outputs())
     }
 
-    fn preflight(&self, p: &RawParams, _: &InputMetas) -> Result<Preflight, StageError> {
+    fn preflight(
+        &self,
+        p: &RawParams,
+        _: &InputMetas,
+    ) -> Result<Preflight<ImportPlan>, StageError> {
         if p.dims.contains(&0) {
             return Err(StageError::param(
                 "dims",
@@ -336,99 +359,75 @@ impl TypedStage for ImportRaw {
         }
         let path = check_path(&p.path)?;
         let probe = probe_raw(path, &p.layout()).map_err(|e| StageError::param("dims", e))?;
-        preflight_common(probe, p.as_, p.spacing, p.origin)
+        preflight_common(&self.info(), probe.into(), p.spacing, &p.options)
     }
 
-    fn run(&self, p: &RawParams, _: &Inputs, _: &RunContext) -> Result<Outputs, StageError> {
-        let spacing = p
-            .spacing
-            .ok_or_else(|| StageError::param("spacing", "a raw file needs the voxel size"))?
-            .si();
-        let origin = p.origin.map(|o| o.si()).unwrap_or([0.0; 3]);
-        let v = read_raw(Path::new(&p.path), &p.layout(), spacing, origin).map_err(read_failed)?;
-        finish(v, &p.path, p.as_, p.spacing, p.origin, &p.unit)
+    fn run(
+        &self,
+        p: &RawParams,
+        plan: &ImportPlan,
+        _: &Inputs,
+        _: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let g = &plan.grid;
+        let v = read_raw(Path::new(&p.path), &p.layout(), g.spacing, g.origin)
+            .map_err(StageError::failed)?;
+        finish(v, plan, &p.path, &p.options, false)
     }
 }
 
 // ---------------------------------------------------------------------------------------
 
+/// An import of one named array of a self-describing file: `$key` names the array, `$header`
+/// reads the file's header, `$read` the array.
 macro_rules! named_import {
-    ($stage:ident, $params:ident, $id:expr, $key:ident, $key_doc:expr, $doc:expr,
-     $probe:expr, $read:expr) => {
-        #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-        #[serde(deny_unknown_fields, default)]
+    ($stage:ident, $params:ident, $id:expr, $key:ident, $key_doc:tt, $doc:expr,
+     $header:expr, $read:expr) => {
+        #[params]
         pub struct $params {
+            /// input file (relative to the working directory)
+            #[param(file, ty = "path")]
             pub path: String,
+            #[doc = $key_doc]
             pub $key: String,
+            /// voxel size: one length or [x, y, z]; overrides the file's
+            #[param(ty = "length or [x, y, z]")]
             pub spacing: Option<Lengths3>,
-            pub origin: Option<Lengths3>,
-            #[serde(rename = "as")]
-            pub as_: ImportAs,
-            pub unit: String,
-        }
-
-        impl Default for $params {
-            fn default() -> Self {
-                $params {
-                    path: String::new(),
-                    $key: String::new(),
-                    spacing: None,
-                    origin: None,
-                    as_: ImportAs::PhaseImage,
-                    unit: String::new(),
-                }
-            }
+            #[param(flatten)]
+            pub options: ImportOptions,
         }
 
         pub struct $stage;
 
         impl TypedStage for $stage {
             type Params = $params;
+            type Plan = ImportPlan;
             fn info(&self) -> StageInfo {
-                StageInfo {
-                    id: $id,
-                    version: "1.0.0",
-                    doc: $doc,
-                    params: vec![
-                        ParamSpec {
-                            name: "path",
-                            ty: "path",
-                            unit: "",
-                            doc: PATH_DOC,
-                        },
-                        ParamSpec {
-                            name: stringify!($key),
-                            ty: "string",
-                            unit: "",
-                            doc: $key_doc,
-                        },
-                        ParamSpec {
-                            name: "spacing",
-                            ty: "length or [x, y, z]",
-                            unit: "m",
-                            doc: SPACING_DOC,
-                        },
-                    ]
-                    .into_iter()
-                    .chain(trailing_specs())
-                    .collect(),
-                    inputs: vec![],
-                    outputs: outputs(),
-                }
+                StageInfo::new($id, "1.0.0", $doc).outputs(outputs())
             }
 
-            fn preflight(&self, p: &$params, _: &InputMetas) -> Result<Preflight, StageError> {
+            fn preflight(
+                &self,
+                p: &$params,
+                _: &InputMetas,
+            ) -> Result<Preflight<ImportPlan>, StageError> {
                 let path = check_path(&p.path)?;
                 #[allow(clippy::redundant_closure_call)]
-                let probe = ($probe)(path, p.$key.as_str())
+                let header = ($header)(path, p.$key.as_str())
                     .map_err(|e| StageError::param(stringify!($key), e))?;
-                preflight_common(probe, p.as_, p.spacing, p.origin)
+                preflight_common(&self.info(), header, p.spacing, &p.options)
             }
 
-            fn run(&self, p: &$params, _: &Inputs, _: &RunContext) -> Result<Outputs, StageError> {
+            fn run(
+                &self,
+                p: &$params,
+                plan: &ImportPlan,
+                _: &Inputs,
+                _: &RunContext,
+            ) -> Result<Outputs, StageError> {
                 #[allow(clippy::redundant_closure_call)]
-                let v = ($read)(Path::new(&p.path), p.$key.as_str()).map_err(read_failed)?;
-                finish(v, &p.path, p.as_, p.spacing, p.origin, &p.unit)
+                let v = ($read)(Path::new(&p.path), p.$key.as_str()).map_err(StageError::failed)?;
+                finish(v, plan, &p.path, &p.options, true)
             }
         }
     };
@@ -450,8 +449,8 @@ named_import!(ImportHdf5, Hdf5Params, "import.hdf5", dataset,
     "dataset path inside the file, e.g. `labels` or `group/data` (shape (z, y, x), (y, x) or (z, y, x, c))",
     "Reads one HDF5 dataset as a volume; spacing/origin (x, y, z, metres) or ImageJ's \
      element_size_um are taken from its attributes when present.",
-    |p: &Path, k: &str| need("dataset", k).and_then(|k| hdf5_plain::probe_hdf5_dataset(p, k)),
-    |p: &Path, k: &str| need("dataset", k).and_then(|k| hdf5_plain::read_hdf5_dataset(p, k)));
+    |p: &Path, k: &str| need("dataset", k).and_then(|k| hdf5_header(p, k)),
+    |p: &Path, k: &str| need("dataset", k).and_then(|k| crate::hdf5_plain::read_hdf5_dataset(p, k)));
 
 named_import!(
     ImportNetcdf,
@@ -461,7 +460,7 @@ named_import!(
     "variable name (dimensions (z, y, x), (y, x) or (z, y, x, component))",
     "Reads one NetCDF variable as a volume; the grid comes from global spacing/origin \
      attributes or from uniform CF coordinate variables (converted through their units).",
-    |p: &Path, k: &str| need("variable", k).and_then(|k| netcdf_io::probe_netcdf_variable(p, k)),
+    |p: &Path, k: &str| need("variable", k).and_then(|k| netcdf_header(p, k)),
     |p: &Path, k: &str| need("variable", k).and_then(|k| netcdf_io::read_netcdf_variable(p, k))
 );
 
@@ -473,48 +472,46 @@ named_import!(
     "array name (default: the active cell scalars, else the first cell or point array)",
     "Reads one array of a VTK XML ImageData file (ascii, binary, appended, zlib); point data \
      is taken as voxel centres. Phase tables written by grainpipe are kept.",
-    |p: &Path, k: &str| vtk_xml::probe_vti(p, opt(k)),
+    |p: &Path, k: &str| vti_header(p, opt(k)),
     |p: &Path, k: &str| vtk_xml::read_vti(p, opt(k))
 );
 
 // ---------------------------------------------------------------------------------------
 
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[params]
 pub struct TiffParams {
+    /// multi-page TIFF file, or directory of .tif/.tiff slices (relative to the working directory)
+    #[param(file, ty = "path")]
     pub path: String,
+    /// voxel size (required: TIFF resolution tags are not trusted)
+    #[param(ty = "length or [x, y, z]")]
     pub spacing: Option<Lengths3>,
-    pub origin: Option<Lengths3>,
-    #[serde(rename = "as")]
-    pub as_: ImportAs,
-    pub unit: String,
+    #[param(flatten)]
+    pub options: ImportOptions,
 }
 
 pub struct ImportTiff;
 
 impl TypedStage for ImportTiff {
     type Params = TiffParams;
+    type Plan = ImportPlan;
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "import.tiff",
-            version: "1.0.0",
-            doc: "Reads a TIFF stack as a volume: a multi-page TIFF (page k = slice z = k) or a \
-                  directory of single-page TIFFs in file-name order, as CT software writes them. \
-                  Grayscale 8/16/32/64-bit pages; row r of a page is y = r. Preflight reads every \
-                  page header and checks that all pages share size and type.",
-            params: vec![
-                ParamSpec { name: "path", ty: "path", unit: "", doc: "multi-page TIFF file, or directory of .tif/.tiff slices (relative to the working directory)" },
-                ParamSpec { name: "spacing", ty: "length or [x, y, z]", unit: "m", doc: "voxel size (required: TIFF resolution tags are not trusted)" },
-            ]
-            .into_iter()
-            .chain(trailing_specs())
-            .collect(),
-            inputs: vec![],
-            outputs: outputs(),
-        }
+        StageInfo::new(
+            "import.tiff",
+            "1.0.0",
+            "Reads a TIFF stack as a volume: a multi-page TIFF (page k = slice z = k) or a \
+             directory of single-page TIFFs in file-name order, as CT software writes them. \
+             Grayscale 8/16/32/64-bit pages; row r of a page is y = r. Preflight reads every \
+             page header and checks that all pages share size and type.",
+        )
+        .outputs(outputs())
     }
 
-    fn preflight(&self, p: &TiffParams, _: &InputMetas) -> Result<Preflight, StageError> {
+    fn preflight(
+        &self,
+        p: &TiffParams,
+        _: &InputMetas,
+    ) -> Result<Preflight<ImportPlan>, StageError> {
         if p.spacing.is_none() {
             return Err(StageError::param(
                 "spacing",
@@ -526,11 +523,187 @@ impl TypedStage for ImportTiff {
             check_path(&p.path)?;
         }
         let probe = crate::tiff_io::probe_tiff(path).map_err(|e| StageError::param("path", e))?;
-        preflight_common(probe, p.as_, p.spacing, p.origin)
+        preflight_common(&self.info(), probe.into(), p.spacing, &p.options)
     }
 
-    fn run(&self, p: &TiffParams, _: &Inputs, _: &RunContext) -> Result<Outputs, StageError> {
-        let v = crate::tiff_io::read_tiff(Path::new(&p.path)).map_err(read_failed)?;
-        finish(v, &p.path, p.as_, p.spacing, p.origin, &p.unit)
+    fn run(
+        &self,
+        p: &TiffParams,
+        plan: &ImportPlan,
+        _: &Inputs,
+        _: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let v = crate::tiff_io::read_tiff(Path::new(&p.path)).map_err(StageError::failed)?;
+        finish(v, plan, &p.path, &p.options, true)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! Preflight knows every grid: for each format, the grid an import announces before
+    //! running equals the grid of what it imports (the engine checks this on every run; the
+    //! tests also compare the two exactly).
+
+    use crate::headers::testdata::{field, image, write_cf_nc, write_plain_h5};
+    use crate::{write_h5, write_nc, write_vti};
+    use grainpipe_core::testing::run_yaml;
+    use grainpipe_core::*;
+    use serde_json::json;
+
+    fn registry() -> Registry {
+        let mut r = Registry::new();
+        crate::register(&mut r);
+        r
+    }
+
+    #[test]
+    fn import_stages_describe_themselves_consistently() {
+        registry().check_consistency().unwrap();
+    }
+
+    fn grid_of(a: &Artifact) -> &Grid {
+        match a {
+            Artifact::PhaseImage(x) => &x.grid,
+            Artifact::Field(x) => &x.grid,
+            other => panic!("imported a {}", other.kind()),
+        }
+    }
+
+    /// Runs `stage` with `with` as a one-step pipeline through the engine (which holds the
+    /// output to the announcement) and returns the output at `port`, after checking that the
+    /// grid announced by preflight is exactly the grid imported.
+    fn import(stage: &str, with: serde_json::Value, port: &str) -> Artifact {
+        let reg = registry();
+        let st = reg.stage(stage).unwrap().stage.clone();
+        let params = st.normalize_params(&with).unwrap();
+        let (pf, _) = st.preflight(&params, &InputMetas::new()).unwrap();
+        assert_eq!(pf.outputs.keys().collect::<Vec<_>>(), [port], "{stage}");
+        let announced = pf.outputs[port].grid.clone().expect("a grid is announced");
+        let yaml = format!("name: t\nstages:\n  - id: imp\n    use: {stage}\n    with: {with}\n");
+        let res = run_yaml(&reg, &yaml).unwrap_or_else(|e| panic!("{stage}: {e}"));
+        let a = res.artifact(&format!("imp.{port}")).clone();
+        assert_eq!(grid_of(&a), &announced, "{stage}");
+        a
+    }
+
+    #[test]
+    fn raw_import_announces_its_grid() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("labels.raw");
+        let img = image([4, 3, 2]);
+        std::fs::write(&p, &img.labels).unwrap();
+        let a = import(
+            "import.raw",
+            json!({"path": p, "dims": [4, 3, 2], "spacing": [1.5e-6, 2.5e-6, 4e-6],
+                   "origin": [-1e-4, 3e-5, 7.25e-3]}),
+            "image",
+        );
+        let got = a.as_phase_image().unwrap();
+        assert_eq!(got.labels, img.labels);
+        assert_eq!(
+            got.grid,
+            Grid {
+                periodic: [false; 3],
+                ..img.grid
+            }
+        );
+    }
+
+    #[test]
+    fn hdf5_import_announces_its_grid_with_the_file_s_periodic_axes() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("i.h5");
+        let img = image([5, 4, 3]);
+        write_h5(
+            &Artifact::PhaseImage(img.clone()),
+            &p,
+            &Provenance::default(),
+        )
+        .unwrap();
+        let a = import(
+            "import.hdf5",
+            json!({"path": p, "dataset": "phase"}),
+            "image",
+        );
+        assert_eq!(a.as_phase_image().unwrap(), &img);
+        // ImageJ's element_size_um, imported as a field with an origin override.
+        let q = d.path().join("ij.h5");
+        write_plain_h5(&q, "v", &[2, 3, 4], Some([2.0, 1.0, 1.0]));
+        let a = import(
+            "import.hdf5",
+            json!({"path": q, "dataset": "v", "as": "field", "origin": "1 um", "unit": "K"}),
+            "field",
+        );
+        let f = a.as_field().unwrap();
+        assert_eq!(f.grid.spacing, [1e-6, 1e-6, 2e-6]);
+        assert_eq!(f.grid.origin, [1e-6; 3]);
+        assert_eq!(f.unit, "K");
+    }
+
+    #[test]
+    fn hdf5_without_a_voxel_size_is_refused_before_running() {
+        let d = tempfile::tempdir().unwrap();
+        let q = d.path().join("bare.h5");
+        write_plain_h5(&q, "v", &[2, 2], None);
+        let st = registry().stage("import.hdf5").unwrap().stage.clone();
+        let params = st
+            .normalize_params(&json!({"path": q, "dataset": "v"}))
+            .unwrap();
+        match st.preflight(&params, &InputMetas::new()) {
+            Err(StageError::InvalidParam { key, .. }) => assert_eq!(key, "spacing"),
+            other => panic!("expected a spacing error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn netcdf_import_announces_its_grid() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("i.nc");
+        let img = image([5, 4, 3]);
+        write_nc(
+            &Artifact::PhaseImage(img.clone()),
+            &p,
+            &Provenance::default(),
+        )
+        .unwrap();
+        let a = import(
+            "import.netcdf",
+            json!({"path": p, "variable": "phase"}),
+            "image",
+        );
+        assert_eq!(a.as_phase_image().unwrap(), &img);
+        // CF coordinates in micrometres, no grainpipe attributes.
+        let q = d.path().join("cf.nc");
+        write_cf_nc(&q, &[("y", 3, 3.0, 0.0), ("x", 4, 2.0, 10.0)]);
+        let a = import(
+            "import.netcdf",
+            json!({"path": q, "variable": "labels"}),
+            "image",
+        );
+        assert_eq!(a.as_phase_image().unwrap().grid.dims, [4, 3, 1]);
+    }
+
+    #[test]
+    fn vti_import_announces_its_grid() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("f.vti");
+        let f = field([3, 2, 4], 3);
+        write_vti(&Artifact::Field(f.clone()), &p, &Provenance::default()).unwrap();
+        let a = import("import.vti", json!({"path": p, "as": "field"}), "field");
+        assert_eq!(a.as_field().unwrap(), &f);
+        // Point data on an offset extent, with a spacing override.
+        let q = d.path().join("points.vti");
+        std::fs::write(
+            &q,
+            "<?xml version=\"1.0\"?>\n<VTKFile type=\"ImageData\" version=\"1.0\">\n\
+             <ImageData WholeExtent=\"1 3 0 1 0 0\" Origin=\"1 2 3\" Spacing=\"0.5 0.25 1\">\n\
+             <Piece Extent=\"1 3 0 1 0 0\"><PointData Scalars=\"l\">\n\
+             <DataArray type=\"UInt8\" Name=\"l\" format=\"ascii\">0 1 2 3 4 5</DataArray>\n\
+             </PointData><CellData></CellData></Piece></ImageData></VTKFile>\n",
+        )
+        .unwrap();
+        import("import.vti", json!({"path": q}), "image");
+        let a = import("import.vti", json!({"path": q, "spacing": 2.0}), "image");
+        assert_eq!(a.as_phase_image().unwrap().grid.spacing, [2.0; 3]);
     }
 }

@@ -5,7 +5,7 @@
 //! |---|---|---|
 //! | `vti` | .vti | PhaseImage, Field |
 //! | `vtp` | .vtp | Packing, ContactGraph |
-//! | `pvd` | .pvd | Series (of images/fields or packings/graphs) |
+//! | `pvd` | .pvd | Series or Collection (of images/fields or packings/graphs) |
 //! | `vtkhdf` | .vtkhdf | PhaseImage, Field |
 //! | `h5` | .h5, .hdf5 | every kind |
 //! | `nc` | .nc | PhaseImage, Field |
@@ -17,6 +17,7 @@
 
 mod h5util;
 pub mod hdf5_plain;
+pub mod headers;
 pub mod import;
 pub mod netcdf_io;
 pub mod raw;

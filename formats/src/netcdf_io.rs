@@ -7,7 +7,7 @@
 use crate::volume::{Probe, Volume, VolumeData, VolumeRef};
 use grainpipe_core::fsutil::atomic_write;
 use grainpipe_core::units::{parse_unit, Dimension};
-use grainpipe_core::{Artifact, FieldData, Phase, Provenance};
+use grainpipe_core::{Artifact, ComponentConvention, FieldData, Phase, Provenance};
 use netcdf::types::{FloatType, IntType, NcVariableType};
 use netcdf::AttributeValue;
 use std::path::Path;
@@ -107,6 +107,12 @@ fn write_inner(v: VolumeRef, tmp: &Path, prov: &Provenance) -> NcResult<()> {
                     var.put_attribute("long_name", fl.name.as_str())
                         .map_err(nc)?;
                     var.put_attribute("units", unit).map_err(nc)?;
+                    var.put_attribute("component_convention", fl.convention.name())
+                        .map_err(nc)?;
+                    if fl.components > 1 {
+                        var.put_attribute("component_names", fl.component_names().join(" "))
+                            .map_err(nc)?;
+                    }
                     var.put_values($d, ..).map_err(nc)?;
                 }};
             }
@@ -264,11 +270,15 @@ pub fn read_netcdf_variable(path: &Path, var: &str) -> Result<Volume, String> {
     let unit = attr_str(v.attribute_value("units"))
         .filter(|u| u != "1")
         .unwrap_or_default();
+    let convention = attr_str(v.attribute_value("component_convention"))
+        .and_then(|c| ComponentConvention::from_name(&c))
+        .unwrap_or_default();
     Ok(Volume {
         name: var.to_string(),
         unit,
         dims,
         components,
+        convention,
         spacing,
         origin,
         periodic,

@@ -111,6 +111,7 @@ pub fn read_raw(
         unit: String::new(),
         dims: layout.dims,
         components: 1,
+        convention: grainpipe_core::ComponentConvention::Plain,
         spacing: Some(spacing),
         origin: Some(origin),
         periodic: [false; 3],

@@ -170,6 +170,7 @@ pub fn read_tiff(path: &Path) -> Result<Volume, String> {
         unit: String::new(),
         dims: probe.dims,
         components: 1,
+        convention: grainpipe_core::ComponentConvention::Plain,
         spacing: None,
         origin: None,
         periodic: [false; 3],

@@ -1,7 +1,7 @@
 //! The in-between representation every volume reader returns (`Volume`) and the view every
 //! volume writer takes (`VolumeRef`), so that PhaseImage/Field handling is written once.
 
-use grainpipe_core::{Artifact, Field, FieldData, Grid, Phase, PhaseImage};
+use grainpipe_core::{Artifact, ComponentConvention, Field, FieldData, Grid, Phase, PhaseImage};
 
 /// Element type of a volume read from a file.
 #[derive(Clone, Debug, PartialEq)]
@@ -48,6 +48,8 @@ pub struct Volume {
     /// [nx, ny, nz].
     pub dims: [usize; 3],
     pub components: usize,
+    /// What the components mean, when the file says (`Plain` otherwise).
+    pub convention: ComponentConvention,
     /// Voxel size [m] when the file states it.
     pub spacing: Option<[f64; 3]>,
     /// Lower grid corner [m] when the file states it.
@@ -124,11 +126,21 @@ impl Volume {
             VolumeData::F64(v) => FieldData::F64(v),
             other => FieldData::F64((0..other.len()).map(|i| other.get(i)).collect()),
         };
+        let convention = if self
+            .convention
+            .component_names(self.components, grid.dims[2])
+            .is_some()
+        {
+            self.convention
+        } else {
+            ComponentConvention::Plain
+        };
         Ok(Field {
             grid,
             name: self.name,
             unit: self.unit,
             components: self.components,
+            convention,
             data,
         })
     }
@@ -194,6 +206,12 @@ impl<'a> VolumeRef<'a> {
         match self {
             VolumeRef::Phase(_) => 1,
             VolumeRef::Field(f) => f.components,
+        }
+    }
+    pub fn convention(&self) -> ComponentConvention {
+        match self {
+            VolumeRef::Phase(_) => ComponentConvention::Plain,
+            VolumeRef::Field(f) => f.convention,
         }
     }
     /// Checks that the array length matches the grid (a malformed artifact must not produce a

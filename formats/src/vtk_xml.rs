@@ -9,6 +9,7 @@ use crate::volume::{from_bytes, to_le_bytes, Le, Probe, Volume, VolumeData, Volu
 use base64::Engine;
 use grainpipe_core::fsutil::atomic_write;
 use grainpipe_core::{
+    ComponentConvention,
     Artifact, ArtifactKind, ContactGraph, FieldData, Packing, Phase, Provenance, Series,
 };
 use std::collections::HashSet;
@@ -35,6 +36,8 @@ pub(crate) struct Array {
     ncomp: usize,
     tuples: usize,
     bytes: Vec<u8>,
+    /// `ComponentName<k>` attributes (shown by ParaView), empty for none.
+    component_names: Vec<String>,
 }
 
 impl Array {
@@ -45,17 +48,26 @@ impl Array {
             ncomp,
             tuples: values.len() / ncomp.max(1),
             bytes: to_le_bytes(values),
+            component_names: Vec::new(),
         }
     }
 
+    fn with_component_names(mut self, names: Vec<String>) -> Self {
+        self.component_names = names;
+        self
+    }
+
     fn xml(&self, tag: &str) -> String {
-        let head = format!(
+        let mut head = format!(
             "<{tag} type=\"{}\" Name=\"{}\" NumberOfComponents=\"{}\" NumberOfTuples=\"{}\"",
             self.vtk_type,
             esc(&self.name),
             self.ncomp,
             self.tuples
         );
+        for (k, n) in self.component_names.iter().enumerate() {
+            head.push_str(&format!(" ComponentName{k}=\"{}\"", esc(n)));
+        }
         if self.bytes.is_empty() {
             // An empty compressed array has no blocks, which some VTK versions misread.
             return format!("{head} format=\"ascii\">\n</{tag}>\n");
@@ -183,13 +195,23 @@ fn vti_text(v: VolumeRef, prov: &Provenance) -> Result<String, String> {
         }
         VolumeRef::Field(f) => {
             strings.push(("unit", vec![f.unit.as_str()]));
-            match &f.data {
+            strings.push(("component_convention", vec![f.convention.name()]));
+            let a = match &f.data {
                 FieldData::F32(d) => Array::new(&f.name, f.components, d),
                 FieldData::F64(d) => Array::new(&f.name, f.components, d),
+            };
+            if f.components > 1 {
+                a.with_component_names(f.component_names())
+            } else {
+                a
             }
         }
     };
-    let role = if v.components() == 3 {
+    let role = if v.components() == 3
+        && matches!(
+            v.convention(),
+            ComponentConvention::Vector | ComponentConvention::Plain
+        ) {
         "Vectors"
     } else {
         "Scalars"
@@ -426,12 +448,30 @@ pub fn write_vtp(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
     write_text(path, &poly.xml())
 }
 
-/// Writes every frame beside the `.pvd` (`<stem>_0000.vtp|vti`), then the collection.
+/// Writes every frame (of a Series) or item (of a Collection) beside the `.pvd`
+/// (`<stem>_0000.vtp|vti`), then the collection file: frames as time steps, items as parts of
+/// one time step (ParaView shows them as the blocks of a multiblock data set).
 pub fn write_pvd(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
-    let Artifact::Series(series) = a else {
-        return Err(format!("pvd takes a Series, not a {}", a.kind()));
+    // (time step, part, item name, artifact)
+    let entries: Vec<(f64, usize, Option<&str>, &Artifact)> = match a {
+        Artifact::Series(series) => {
+            check_series(series)?;
+            series.frames.iter().map(|(t, f)| (*t, 0, None, f)).collect()
+        }
+        Artifact::Collection(c) => c
+            .items
+            .iter()
+            .enumerate()
+            .map(|(k, (name, item))| (0.0, k, Some(name.as_str()), item))
+            .collect(),
+        _ => {
+            return Err(format!(
+                "pvd takes a Series or a Collection, not a {}",
+                a.kind()
+            ))
+        }
     };
-    let ext = series_extension(series)?;
+    let ext = pvd_extension(entries.iter().map(|e| e.3))?;
     let stem = path
         .file_stem()
         .ok_or_else(|| format!("{}: no file name", path.display()))?
@@ -441,16 +481,22 @@ pub fn write_pvd(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
     let mut coll = String::from(
         "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"1.0\" byte_order=\"LittleEndian\">\n<Collection>\n",
     );
-    for (k, (t, frame)) in series.frames.iter().enumerate() {
+    for (k, (t, part, item_name, item)) in entries.iter().enumerate() {
         let name = format!("{stem}_{k:04}.{ext}");
         let mut p = prov.clone();
-        p.entries.insert("time".into(), num(*t));
+        match item_name {
+            Some(n) => p.entries.insert("item".into(), n.to_string()),
+            None => p.entries.insert("time".into(), num(*t)),
+        };
         match ext {
-            "vti" => write_vti(frame, &dir.join(&name), &p)?,
-            _ => write_vtp(frame, &dir.join(&name), &p)?,
+            "vti" => write_vti(item, &dir.join(&name), &p)?,
+            _ => write_vtp(item, &dir.join(&name), &p)?,
         }
+        let label = item_name
+            .map(|n| format!(" name=\"{}\"", esc(n)))
+            .unwrap_or_default();
         coll.push_str(&format!(
-            "<DataSet timestep=\"{}\" group=\"\" part=\"0\" file=\"{}\"/>\n",
+            "<DataSet timestep=\"{}\" group=\"\" part=\"{part}\"{label} file=\"{}\"/>\n",
             num(*t),
             esc(&name)
         ));
@@ -459,26 +505,31 @@ pub fn write_pvd(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
     write_text(path, &coll)
 }
 
-/// All frames must be of one kind that VTK XML holds; returns the frame extension.
-fn series_extension(s: &Series) -> Result<&'static str, String> {
-    let Some((_, first)) = s.frames.first() else {
-        return Err("the series has no frames".into());
-    };
-    let kind = first.kind();
-    if let Some((t, f)) = s.frames.iter().find(|(_, f)| f.kind() != kind) {
-        return Err(format!(
-            "series mixes {kind} and {} frames (at t = {t} s); a .pvd needs one kind",
-            f.kind()
-        ));
-    }
+/// Series times must not decrease.
+fn check_series(s: &Series) -> Result<(), String> {
     if s.frames.windows(2).any(|w| w[1].0 < w[0].0) {
         return Err("series times must not decrease".into());
+    }
+    Ok(())
+}
+
+/// All frames or items must be of one kind that VTK XML holds; returns their extension.
+fn pvd_extension<'a>(mut items: impl Iterator<Item = &'a Artifact>) -> Result<&'static str, String> {
+    let Some(first) = items.next() else {
+        return Err("nothing to write: no frames or items".into());
+    };
+    let kind = first.kind();
+    if let Some(other) = items.find(|f| f.kind() != kind) {
+        return Err(format!(
+            "mixes {kind} and {} entries; a .pvd needs one kind",
+            other.kind()
+        ));
     }
     match kind {
         ArtifactKind::PhaseImage | ArtifactKind::Field => Ok("vti"),
         ArtifactKind::Packing | ArtifactKind::ContactGraph => Ok("vtp"),
         k => Err(format!(
-            "a .pvd series holds images, fields, packings or contact graphs, not {k}"
+            "a .pvd holds images, fields, packings or contact graphs, not {k}"
         )),
     }
 }
@@ -528,8 +579,9 @@ exporter!(
     PvdExporter,
     "pvd",
     &["pvd"],
-    [Series],
-    "ParaView collection: one .vti/.vtp per frame beside the .pvd, with time steps",
+    [Series, Collection],
+    "ParaView collection: one .vti/.vtp per frame (time steps) or per item (parts) beside the \
+     .pvd",
     write_pvd
 );
 
@@ -1033,11 +1085,16 @@ pub fn read_vti(path: &Path, array: Option<&str>) -> Result<Volume, String> {
             periodic = [0, 1, 2].map(|a| p.get(a) != 0.0);
         }
     }
+    let convention = strings("component_convention")?
+        .and_then(|c| c.into_iter().next())
+        .and_then(|c| ComponentConvention::from_name(&c))
+        .unwrap_or_default();
     Ok(Volume {
         name,
         unit,
         dims,
         components,
+        convention,
         spacing,
         origin,
         periodic,

@@ -61,6 +61,12 @@ fn field(dims: [usize; 3], components: usize, f32: bool) -> Field {
         name: "temperature".into(),
         unit: "K".into(),
         components,
+        // Three components are a vector, so every format must carry the convention through.
+        convention: if components == 3 {
+            ComponentConvention::Vector
+        } else {
+            ComponentConvention::Plain
+        },
         data: if f32 {
             FieldData::F32(v.iter().map(|&x| x as f32).collect())
         } else {
@@ -394,6 +400,13 @@ fn hdf5_round_trip_every_other_kind() {
         ],
     };
     let lib = packing().library.unwrap();
+    // Item names need not sort like their order: the order is kept, not re-sorted by name.
+    let collection = Collection {
+        items: vec![
+            ("zeta".into(), Artifact::Packing(packing())),
+            ("alpha".into(), Artifact::ContactGraph(graph())),
+        ],
+    };
     for a in [
         Artifact::Packing(packing()),
         Artifact::ContactGraph(graph()),
@@ -401,11 +414,37 @@ fn hdf5_round_trip_every_other_kind() {
         Artifact::Tensor(tensor()),
         Artifact::ClumpLibrary(lib),
         Artifact::Series(series),
+        Artifact::Collection(collection),
     ] {
         write_h5(&a, &p, &prov()).unwrap();
         assert_eq!(read_h5(&p).unwrap(), a, "{}", a.kind());
     }
-    assert!(read_h5_packing(&p).unwrap_err().contains("Series"));
+    assert!(read_h5_packing(&p).unwrap_err().contains("Collection"));
+}
+
+#[test]
+fn pvd_of_a_collection_names_its_parts_and_refuses_mixed_kinds() {
+    let d = tmp();
+    let p = d.path().join("grains.pvd");
+    let two = Collection {
+        items: vec![
+            ("a".into(), Artifact::Packing(packing())),
+            ("b".into(), Artifact::Packing(packing())),
+        ],
+    };
+    write_pvd(&Artifact::Collection(two), &p, &prov()).unwrap();
+    let text = std::fs::read_to_string(&p).unwrap();
+    assert!(text.contains("part=\"0\" name=\"a\" file=\"grains_0000.vtp\""), "{text}");
+    assert!(text.contains("part=\"1\" name=\"b\" file=\"grains_0001.vtp\""), "{text}");
+    assert!(d.path().join("grains_0001.vtp").is_file());
+    let mixed = Collection {
+        items: vec![
+            ("a".into(), Artifact::Packing(packing())),
+            ("b".into(), Artifact::Table(table())),
+        ],
+    };
+    let e = write_pvd(&Artifact::Collection(mixed), &d.path().join("m.pvd"), &prov()).unwrap_err();
+    assert!(e.contains("mixes Packing and Table"), "{e}");
 }
 
 #[test]
@@ -526,13 +565,18 @@ fn import_raw_preflight_checks_size_and_run_gives_labels() {
         path: p.display().to_string(),
         dims: [4, 3, 2],
         spacing: Some(Lengths3::Three(grid([1; 3]).spacing.map(units::Q::new))),
-        origin: Some(Lengths3::Three(grid([1; 3]).origin.map(units::Q::new))),
+        options: ImportOptions {
+            origin: Some(Lengths3::Three(grid([1; 3]).origin.map(units::Q::new))),
+            ..ImportOptions::default()
+        },
         ..RawParams::default()
     };
     let pf = ImportRaw.preflight(&params, &InputMetas::new()).unwrap();
     assert_eq!(pf.memory_bytes, 2 * 24);
     assert_eq!(pf.outputs["image"].grid.as_ref().unwrap().dims, [4, 3, 2]);
-    let out = ImportRaw.run(&params, &Inputs::new(), &ctx()).unwrap();
+    let out = ImportRaw
+        .run(&params, &pf.plan, &Inputs::new(), &ctx())
+        .unwrap();
     let got = out["image"].as_phase_image().unwrap();
     assert_eq!(got.labels, img.labels);
     assert_eq!(got.grid.spacing, img.grid.spacing);
@@ -572,9 +616,9 @@ fn import_refuses_labels_above_255() {
         spacing: Some(Lengths3::One(units::Q::new(1e-6))),
         ..RawParams::default()
     };
-    ImportRaw.preflight(&params, &InputMetas::new()).unwrap();
+    let pf = ImportRaw.preflight(&params, &InputMetas::new()).unwrap();
     let e = ImportRaw
-        .run(&params, &Inputs::new(), &ctx())
+        .run(&params, &pf.plan, &Inputs::new(), &ctx())
         .unwrap_err()
         .to_string();
     assert!(
@@ -583,11 +627,17 @@ fn import_refuses_labels_above_255() {
     );
     // the same data is fine as a field
     let params = RawParams {
-        as_: ImportAs::Field,
-        unit: "Pa".into(),
+        options: ImportOptions {
+            as_: ImportAs::Field,
+            unit: "Pa".into(),
+            ..params.options.clone()
+        },
         ..params
     };
-    let out = ImportRaw.run(&params, &Inputs::new(), &ctx()).unwrap();
+    let pf = ImportRaw.preflight(&params, &InputMetas::new()).unwrap();
+    let out = ImportRaw
+        .run(&params, &pf.plan, &Inputs::new(), &ctx())
+        .unwrap();
     let f = out["field"].as_field().unwrap();
     assert_eq!(f.data, FieldData::F64(vec![3.0, 300.0, 7.0, 0.0]));
     assert_eq!(f.unit, "Pa");
@@ -611,14 +661,11 @@ fn import_hdf5_netcdf_vti_round_trip_through_the_stages() {
         ..Default::default()
     };
     let pf = ImportHdf5.preflight(&hp, &InputMetas::new()).unwrap();
-    assert_eq!(
-        pf.outputs["image"].grid.as_ref().unwrap(),
-        &Grid {
-            periodic: [false; 3],
-            ..img.grid.clone()
-        }
-    );
-    let out = ImportHdf5.run(&hp, &Inputs::new(), &ctx()).unwrap();
+    // The file's periodic flags are announced (the run gives them too).
+    assert_eq!(pf.outputs["image"].grid.as_ref().unwrap(), &img.grid);
+    let out = ImportHdf5
+        .run(&hp, &pf.plan, &Inputs::new(), &ctx())
+        .unwrap();
     assert_eq!(out["image"].as_phase_image().unwrap(), &img);
     let missing = Hdf5Params {
         dataset: "nope".into(),
@@ -635,22 +682,32 @@ fn import_hdf5_netcdf_vti_round_trip_through_the_stages() {
         variable: "phase".into(),
         ..Default::default()
     };
-    ImportNetcdf.preflight(&np, &InputMetas::new()).unwrap();
-    let out = ImportNetcdf.run(&np, &Inputs::new(), &ctx()).unwrap();
+    let pf = ImportNetcdf.preflight(&np, &InputMetas::new()).unwrap();
+    let out = ImportNetcdf
+        .run(&np, &pf.plan, &Inputs::new(), &ctx())
+        .unwrap();
     assert_eq!(out["image"].as_phase_image().unwrap(), &img);
 
     let vp = VtiParams {
         path: vti.display().to_string(),
-        as_: ImportAs::Field,
+        options: ImportOptions {
+            as_: ImportAs::Field,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let pf = ImportVti.preflight(&vp, &InputMetas::new()).unwrap();
     assert_eq!(pf.memory_bytes, (5 * 4 * 3 * 3 * (4 + 4)) as u64);
-    let out = ImportVti.run(&vp, &Inputs::new(), &ctx()).unwrap();
+    let out = ImportVti
+        .run(&vp, &pf.plan, &Inputs::new(), &ctx())
+        .unwrap();
     assert_eq!(out["field"].as_field().unwrap(), &f);
     // three components cannot be labels
     let as_img = VtiParams {
-        as_: ImportAs::PhaseImage,
+        options: ImportOptions {
+            as_: ImportAs::PhaseImage,
+            ..vp.options.clone()
+        },
         ..vp.clone()
     };
     let e = ImportVti
@@ -668,8 +725,8 @@ fn import_hdf5_netcdf_vti_round_trip_through_the_stages() {
     };
     let e = match ImportVti.preflight(&cp, &InputMetas::new()) {
         Err(e) => e.to_string(),
-        Ok(_) => ImportVti
-            .run(&cp, &Inputs::new(), &ctx())
+        Ok(pf) => ImportVti
+            .run(&cp, &pf.plan, &Inputs::new(), &ctx())
             .unwrap_err()
             .to_string(),
     };
@@ -755,9 +812,9 @@ fn import_of_corrupt_hdf5_and_netcdf_names_the_file() {
                 dataset: var.into(),
                 ..Default::default()
             };
-            ImportHdf5.preflight(&hp, &InputMetas::new()).and_then(|_| {
+            ImportHdf5.preflight(&hp, &InputMetas::new()).and_then(|pf| {
                 ImportHdf5
-                    .run(&hp, &Inputs::new(), &ctx())
+                    .run(&hp, &pf.plan, &Inputs::new(), &ctx())
                     .map(|_| unreachable!())
             })
         } else {
@@ -768,9 +825,9 @@ fn import_of_corrupt_hdf5_and_netcdf_names_the_file() {
             };
             ImportNetcdf
                 .preflight(&np, &InputMetas::new())
-                .and_then(|_| {
+                .and_then(|pf| {
                     ImportNetcdf
-                        .run(&np, &Inputs::new(), &ctx())
+                        .run(&np, &pf.plan, &Inputs::new(), &ctx())
                         .map(|_| unreachable!())
                 })
         }

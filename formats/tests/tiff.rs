@@ -3,7 +3,7 @@
 
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{Inputs, RunContext, StageError, TypedStage};
-use grainpipe_formats::import::{ImportAs, ImportTiff, Lengths3, TiffParams};
+use grainpipe_formats::import::{ImportAs, ImportOptions, ImportTiff, Lengths3, TiffParams};
 use grainpipe_formats::tiff_io::{probe_tiff, read_tiff};
 use std::path::Path;
 use tiff::encoder::{colortype, TiffEncoder};
@@ -36,10 +36,14 @@ fn multipage_tiff_reads_back_every_voxel() {
         spacing: Some(Lengths3::One(grainpipe_core::units::Q::new(4e-6))),
         ..Default::default()
     };
-    ImportTiff.preflight(&params, &Default::default()).unwrap();
+    let plan = ImportTiff
+        .preflight(&params, &Default::default())
+        .unwrap()
+        .plan;
     let out = ImportTiff
         .run(
             &params,
+            &plan,
             &Inputs::new(),
             &RunContext::new(0, &SilentReporter),
         )
@@ -79,15 +83,19 @@ fn directory_of_16_bit_slices_in_name_order() {
     let mut p = TiffParams {
         path: dir.path().to_str().unwrap().into(),
         spacing: Some(Lengths3::One(grainpipe_core::units::Q::new(1e-6))),
-        as_: ImportAs::Field,
-        ..Default::default()
+        options: ImportOptions {
+            as_: ImportAs::Field,
+            ..Default::default()
+        },
     };
     let ctx = RunContext::new(0, &SilentReporter);
-    let out = ImportTiff.run(&p, &Inputs::new(), &ctx).unwrap();
+    let plan = ImportTiff.preflight(&p, &Default::default()).unwrap().plan;
+    let out = ImportTiff.run(&p, &plan, &Inputs::new(), &ctx).unwrap();
     assert_eq!(out["field"].as_field().unwrap().data.get(17), 2005.0);
-    p.as_ = ImportAs::PhaseImage;
+    p.options.as_ = ImportAs::PhaseImage;
+    let plan = ImportTiff.preflight(&p, &Default::default()).unwrap().plan;
     assert!(matches!(
-        ImportTiff.run(&p, &Inputs::new(), &ctx),
+        ImportTiff.run(&p, &plan, &Inputs::new(), &ctx),
         Err(StageError::Failed(_))
     ));
 }
@@ -131,4 +139,38 @@ fn broken_stacks_are_refused_in_preflight() {
     assert!(
         matches!(ImportTiff.preflight(&p, &Default::default()), Err(StageError::InvalidParam { key, .. }) if key == "spacing")
     );
+}
+
+/// Preflight knows the grid: a stack imported through the engine (which holds every output
+/// to its announcement) lands on exactly the grid its preflight announced, for a multi-page
+/// file and for a directory of slices.
+#[test]
+fn tiff_import_announces_its_grid() {
+    use grainpipe_core::testing::run_yaml;
+    use grainpipe_core::{InputMetas, Registry};
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("stack.tif");
+    write_multipage(&file, [5, 4, 3]);
+    let slices = dir.path().join("slices");
+    std::fs::create_dir(&slices).unwrap();
+    for z in 0..2 {
+        write_multipage(&slices.join(format!("s{z}.tif")), [3, 2, 1]);
+    }
+    let mut reg = Registry::new();
+    grainpipe_formats::register(&mut reg);
+    for (path, dims) in [(&file, [5, 4, 3]), (&slices, [3, 2, 2])] {
+        let with = serde_json::json!({"path": path, "spacing": ["4 um", "4 um", "10 um"], "origin": [0, "1 mm", 0]});
+        let st = reg.stage("import.tiff").unwrap().stage.clone();
+        let (pf, _) = st
+            .preflight(&st.normalize_params(&with).unwrap(), &InputMetas::new())
+            .unwrap();
+        let announced = pf.outputs["image"].grid.clone().unwrap();
+        assert_eq!(announced.dims, dims);
+        let yaml =
+            format!("name: t\nstages:\n  - id: tif\n    use: import.tiff\n    with: {with}\n");
+        let res = run_yaml(&reg, &yaml).unwrap();
+        let img = res.artifact("tif.image").as_phase_image().unwrap();
+        assert_eq!(img.grid, announced);
+        assert_eq!(img.grid.origin, [0.0, 1e-3, 0.0]);
+    }
 }

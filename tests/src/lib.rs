@@ -1,16 +1,13 @@
 //! Helpers for the workspace-level tests in `tests/tests/`: run a shipped pipeline with its
-//! outputs redirected to a temporary directory.
+//! outputs redirected to a temporary directory, through the built-in registry.
 
-use grainpipe_core::engine::{run_quietly, RunResult};
-use grainpipe_core::pipeline::{PipelineDoc, PipelineError};
+use grainpipe_core::engine::RunResult;
+use grainpipe_core::pipeline::PipelineError;
 use std::path::{Path, PathBuf};
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("workspace root")
-        .to_path_buf()
+    grainpipe_core::testing::workspace_root(env!("CARGO_MANIFEST_DIR"))
 }
 
 /// Loads `pipelines/<name>`, applies `overrides`, rewrites export paths `out/...` into
@@ -20,11 +17,11 @@ pub fn run_pipeline(
     overrides: &[&str],
     out_dir: &Path,
 ) -> Result<RunResult, PipelineError> {
-    let path = repo_root().join("pipelines").join(name);
-    let mut doc = PipelineDoc::load(&path)?;
-    for o in overrides {
-        doc.apply_override(o)?;
-    }
-    doc.redirect_exports(out_dir);
-    run_quietly(&doc, &grainpipe_cli::builtin_registry())
+    grainpipe_core::testing::run_pipeline(
+        &grainpipe_cli::builtin_registry(),
+        &repo_root(),
+        name,
+        overrides,
+        out_dir,
+    )
 }

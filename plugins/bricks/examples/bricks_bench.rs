@@ -4,7 +4,9 @@
 //! `cargo run --release -p grainpipe-bricks --example bricks_bench`
 //! Optional argument: number of rayon threads (default 2).
 
-use grainpipe_bricks::{Curved, CurvedParams, Method1, Method1Params, Method2, Method2Params};
+use grainpipe_bricks::{
+    BrickParams, Curved, CurvedParams, Method1, Method1Params, Method2, Method2Params,
+};
 use grainpipe_core::distributions::SizeDistribution;
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::units::Q;
@@ -30,6 +32,12 @@ fn col(o: &Outputs, name: &str) -> f64 {
     }
 }
 
+/// Preflight (which builds the unit brick) and run, as the engine does.
+fn go<T: TypedStage>(stage: &T, p: &T::Params, ctx: &RunContext) -> Result<Outputs, StageError> {
+    let plan = stage.preflight(p, &Default::default())?.plan;
+    stage.run(p, &plan, &Default::default(), ctx)
+}
+
 type Runner = Box<dyn Fn(&RunContext) -> Result<Outputs, StageError> + Sync>;
 
 struct Case {
@@ -40,13 +48,15 @@ struct Case {
 
 fn m1(fg: f64, bg: f64, cp: f64, sides: [f64; 3], std: f64, n: [usize; 3]) -> Method1Params {
     Method1Params {
-        face_goal: fg,
-        body_goal: bg,
-        contact_parameter: cp,
-        brick_sides: sides,
-        std_length: std,
+        common: BrickParams {
+            face_goal: fg,
+            body_goal: bg,
+            contact_parameter: cp,
+            brick_sides: sides,
+            std_length: std,
+            ..Default::default()
+        },
         brick_numbers: n,
-        ..Default::default()
     }
 }
 
@@ -58,12 +68,14 @@ fn m2(
     n: [usize; 3],
 ) -> Method2Params {
     Method2Params {
-        radius,
-        contact_parameter: cp,
-        brick_sides: sides,
-        std_length: std,
+        common: BrickParams {
+            radius,
+            contact_parameter: cp,
+            brick_sides: sides,
+            std_length: std,
+            ..Default::default()
+        },
         brick_numbers: n,
-        ..Default::default()
     }
 }
 
@@ -81,54 +93,30 @@ fn main() {
         Case {
             name: "1A M1 Weibull 15r eps=0.1",
             paper: "T = 6 min, N = 450",
-            run: Box::new(move |c| {
-                Method1.run(
-                    &m1(0.8, 0.55, 0.1, cube, 15.0, [2, 2, 1]),
-                    &Default::default(),
-                    c,
-                )
-            }),
+            run: Box::new(move |c| go(&Method1, &m1(0.8, 0.55, 0.1, cube, 15.0, [2, 2, 1]), c)),
         },
         Case {
             name: "1A M1 Weibull 15r eps=0.2",
             paper: "T = 2 min, N = 412",
-            run: Box::new(move |c| {
-                Method1.run(
-                    &m1(0.8, 0.55, 0.2, cube, 15.0, [2, 2, 1]),
-                    &Default::default(),
-                    c,
-                )
-            }),
+            run: Box::new(move |c| go(&Method1, &m1(0.8, 0.55, 0.2, cube, 15.0, [2, 2, 1]), c)),
         },
         Case {
             name: "1B M1 Weibull 30r eps=0.1",
             paper: "T = 187 min, N = 3075",
-            run: Box::new(move |c| {
-                Method1.run(
-                    &m1(0.8, 0.55, 0.1, cube, 30.0, [2, 2, 1]),
-                    &Default::default(),
-                    c,
-                )
-            }),
+            run: Box::new(move |c| go(&Method1, &m1(0.8, 0.55, 0.1, cube, 30.0, [2, 2, 1]), c)),
         },
         Case {
             name: "1B M1 Weibull 30r eps=0.2",
             paper: "T = 40 min, N = 2867",
-            run: Box::new(move |c| {
-                Method1.run(
-                    &m1(0.8, 0.55, 0.2, cube, 30.0, [2, 2, 1]),
-                    &Default::default(),
-                    c,
-                )
-            }),
+            run: Box::new(move |c| go(&Method1, &m1(0.8, 0.55, 0.2, cube, 30.0, [2, 2, 1]), c)),
         },
         Case {
             name: "1C M1 [1.2,1.7,1]x15r, 4x4x2",
             paper: "T ~ 10 min",
             run: Box::new(move |c| {
-                Method1.run(
+                go(
+                    &Method1,
                     &m1(0.8, 0.55, 0.2, [1.2, 1.7, 1.0], 15.0, [4, 4, 2]),
-                    &Default::default(),
                     c,
                 )
             }),
@@ -137,9 +125,9 @@ fn main() {
             name: "1C M1 [1.2,1.7,1]x30r, 2x2x1",
             paper: "T ~ 160 min",
             run: Box::new(move |c| {
-                Method1.run(
+                go(
+                    &Method1,
                     &m1(0.8, 0.55, 0.2, [1.2, 1.7, 1.0], 30.0, [2, 2, 1]),
-                    &Default::default(),
                     c,
                 )
             }),
@@ -147,54 +135,30 @@ fn main() {
         Case {
             name: "2 M2 Gamma 15r eps=0.1",
             paper: "T = 7 s, N = 160",
-            run: Box::new(move |c| {
-                Method2.run(
-                    &m2(gamma(), 0.1, cube, 15.0, [2, 2, 1]),
-                    &Default::default(),
-                    c,
-                )
-            }),
+            run: Box::new(move |c| go(&Method2, &m2(gamma(), 0.1, cube, 15.0, [2, 2, 1]), c)),
         },
         Case {
             name: "2 M2 Gamma 15r eps=0.2",
             paper: "T = 11 s, N = 178",
-            run: Box::new(move |c| {
-                Method2.run(
-                    &m2(gamma(), 0.2, cube, 15.0, [2, 2, 1]),
-                    &Default::default(),
-                    c,
-                )
-            }),
+            run: Box::new(move |c| go(&Method2, &m2(gamma(), 0.2, cube, 15.0, [2, 2, 1]), c)),
         },
         Case {
             name: "2 M2 Gamma 30r eps=0.1",
             paper: "T = 14 min, N = 1757",
-            run: Box::new(move |c| {
-                Method2.run(
-                    &m2(gamma(), 0.1, cube, 30.0, [2, 2, 1]),
-                    &Default::default(),
-                    c,
-                )
-            }),
+            run: Box::new(move |c| go(&Method2, &m2(gamma(), 0.1, cube, 30.0, [2, 2, 1]), c)),
         },
         Case {
             name: "2 M2 Gamma 30r eps=0.2",
             paper: "T = 15 min, N = 1771",
-            run: Box::new(move |c| {
-                Method2.run(
-                    &m2(gamma(), 0.2, cube, 30.0, [2, 2, 1]),
-                    &Default::default(),
-                    c,
-                )
-            }),
+            run: Box::new(move |c| go(&Method2, &m2(gamma(), 0.2, cube, 30.0, [2, 2, 1]), c)),
         },
         Case {
             name: "T3 M2 Weibull 15r eps=0.1",
             paper: "T = 4 min, N = 591",
             run: Box::new(move |c| {
-                Method2.run(
+                go(
+                    &Method2,
                     &m2(SizeDistribution::default(), 0.1, cube, 15.0, [2, 2, 1]),
-                    &Default::default(),
                     c,
                 )
             }),
@@ -203,9 +167,9 @@ fn main() {
             name: "T3 M2 Weibull 15r eps=0.2",
             paper: "T = 4 min, N = 594",
             run: Box::new(move |c| {
-                Method2.run(
+                go(
+                    &Method2,
                     &m2(SizeDistribution::default(), 0.2, cube, 15.0, [2, 2, 1]),
-                    &Default::default(),
                     c,
                 )
             }),
@@ -214,9 +178,9 @@ fn main() {
             name: "T3 M2 Weibull 30r eps=0.1",
             paper: "T = 32 min, N = 3332",
             run: Box::new(move |c| {
-                Method2.run(
+                go(
+                    &Method2,
                     &m2(SizeDistribution::default(), 0.1, cube, 30.0, [2, 2, 1]),
-                    &Default::default(),
                     c,
                 )
             }),
@@ -225,9 +189,9 @@ fn main() {
             name: "T3 M2 Weibull 30r eps=0.2",
             paper: "T = 38 min, N = 3606",
             run: Box::new(move |c| {
-                Method2.run(
+                go(
+                    &Method2,
                     &m2(SizeDistribution::default(), 0.2, cube, 30.0, [2, 2, 1]),
-                    &Default::default(),
                     c,
                 )
             }),
@@ -235,26 +199,30 @@ fn main() {
         Case {
             name: "3A curved cube 30r, R=0.5,0.5",
             paper: "T = 49 min",
-            run: Box::new(move |c| Curved.run(&CurvedParams::default(), &Default::default(), c)),
+            run: Box::new(move |c| go(&Curved, &CurvedParams::default(), c)),
         },
         Case {
             name: "3B curved [1.3,1,1]x30r, R=0.2,0.4",
             paper: "T = 41 min",
             run: Box::new(move |c| {
                 let p = CurvedParams {
-                    brick_sides: [1.3, 1.0, 1.0],
+                    common: BrickParams {
+                        brick_sides: [1.3, 1.0, 1.0],
+                        contact_parameter: 0.2,
+                        ..Default::default()
+                    },
                     hemisphere_radii: [0.2, 0.4],
-                    contact_parameter: 0.2,
                     ..Default::default()
                 };
-                Curved.run(&p, &Default::default(), c)
+                go(&Curved, &p, c)
             }),
         },
         Case {
             name: "5.2 powder bed M2 [1,1,0.12]x30r, 6x6x1",
             paper: "T ~ 5 min",
             run: Box::new(move |c| {
-                Method2.run(
+                go(
+                    &Method2,
                     &m2(
                         SizeDistribution::default(),
                         0.1,
@@ -262,7 +230,6 @@ fn main() {
                         30.0,
                         [6, 6, 1],
                     ),
-                    &Default::default(),
                     c,
                 )
             }),

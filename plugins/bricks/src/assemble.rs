@@ -1,7 +1,7 @@
 //! Builds the total domain from the unit brick and finds contacts and face lists.
 
 use crate::fill::{Filler, Mode};
-use crate::grid::CellGrid;
+use grainpipe_core::spatial::CellList;
 use grainpipe_core::Contact;
 use rayon::prelude::*;
 
@@ -102,11 +102,11 @@ pub fn contacts(pos: &[[f64; 3]], rad: &[f64], size: [f64; 3], max_gap: f64) -> 
     }
     let rmean = rad.iter().sum::<f64>() / rad.len() as f64;
     // Grid over the domain box; spheres sticking out are clamped into border cells.
-    let mut g = CellGrid::new(size, [false; 3], 2.0 * rmean);
-    for (i, (p, r)) in pos.iter().zip(rad).enumerate() {
-        g.insert(i as u32, *p, *r);
+    let mut g = CellList::new([0.0; 3], size, [false; 3], 2.0 * rmean);
+    for (i, p) in pos.iter().enumerate() {
+        g.insert(i as u32, *p);
     }
-    let rmax = g.rmax;
+    let rmax = rad.iter().cloned().fold(0.0, f64::max);
     (0..pos.len())
         .into_par_iter()
         .map(|i| {

@@ -21,9 +21,9 @@
 //! (and one edge per axis, one corner) are filled -- their copies on the opposite faces are the
 //! periodic images, which is what makes translated bricks fit seamlessly.
 
-use crate::grid::CellGrid;
 use crate::sdf::Sdf;
 use grainpipe_core::distributions::SizeDistribution;
+use grainpipe_core::spatial::CellList;
 use grainpipe_core::{RunContext, StageError};
 use rand_chacha::ChaCha8Rng;
 use std::f64::consts::PI;
@@ -54,6 +54,40 @@ pub struct FillSettings {
     pub faces: [bool; 6],
     /// Stage id, for messages.
     pub stage: &'static str,
+}
+
+/// Why a fill stopped without a result.
+#[derive(Debug, thiserror::Error)]
+pub enum FillError {
+    /// A face or the volume saturated below its goal (with `require_goals`).
+    #[error(
+        "{stage}: {what} after {draws} draws ({rejected} rejected; a phase stops after \
+         {max_consecutive} rejections in a row or a rejected fraction above {max_fraction}): \
+         the {region} is saturated; lower the goal, enlarge the brick, or set \
+         require_goals: false"
+    )]
+    Saturated {
+        stage: &'static str,
+        /// What was reached, e.g. "body fraction reached 0.61 < body_goal 0.95".
+        what: String,
+        draws: u64,
+        rejected: u64,
+        max_consecutive: u64,
+        max_fraction: f64,
+        /// "face" or "volume".
+        region: &'static str,
+    },
+    #[error("cancelled")]
+    Cancelled,
+}
+
+impl From<FillError> for StageError {
+    fn from(e: FillError) -> Self {
+        match e {
+            FillError::Cancelled => StageError::Cancelled,
+            e => StageError::Failed(e.to_string()),
+        }
+    }
 }
 
 /// Consecutive rejections that close an edge (its last gap is too small for most draws).
@@ -99,7 +133,7 @@ pub struct FillStats {
 pub struct Filler<'a> {
     pub mode: Mode,
     pub len: [f64; 3],
-    pub sdf: Sdf,
+    pub sdf: &'a Sdf,
     pub pos: Vec<[f64; 3]>,
     pub rad: Vec<f64>,
     /// Closed: bit f = tangent to face f. Centered: bit a = centred on the plane `x_a = 0`.
@@ -108,7 +142,9 @@ pub struct Filler<'a> {
     pub drawn: Vec<bool>,
     /// Cell lists of the spheres up to `split` and of the larger ones (coarser cells), so
     /// a long radius tail does not widen every query.
-    grids: [CellGrid; 2],
+    grids: [CellList; 2],
+    /// Largest radius in each cell list (0 while empty).
+    grid_rmax: [f64; 2],
     split: f64,
     dist: &'a SizeDistribution,
     pub rmean: f64,
@@ -201,7 +237,7 @@ impl<'a> Filler<'a> {
     pub fn new(
         mode: Mode,
         len: [f64; 3],
-        sdf: Sdf,
+        sdf: &'a Sdf,
         dist: &'a SizeDistribution,
         settings: FillSettings,
         rng: ChaCha8Rng,
@@ -209,8 +245,8 @@ impl<'a> Filler<'a> {
         let rmean = dist.mean();
         let periodic = [mode == Mode::Centered; 3];
         let grids = [
-            CellGrid::new(len, periodic, 2.0 * rmean),
-            CellGrid::new(len, periodic, 8.0 * rmean),
+            CellList::new([0.0; 3], len, periodic, 2.0 * rmean),
+            CellList::new([0.0; 3], len, periodic, 8.0 * rmean),
         ];
         let (face_area, volume) = match mode {
             Mode::Closed => {
@@ -245,6 +281,7 @@ impl<'a> Filler<'a> {
             on_face: Vec::new(),
             drawn: Vec::new(),
             grids,
+            grid_rmax: [0.0; 2],
             split: 2.0 * rmean,
             dist,
             rmean,
@@ -286,8 +323,8 @@ impl<'a> Filler<'a> {
         reach: f64,
         mut f: impl FnMut(u32, [f64; 3]) -> bool,
     ) -> bool {
-        for g in &self.grids {
-            if g.rmax > 0.0 && !g.visit(c, reach + g.rmax, &mut f) {
+        for (g, &rmax) in self.grids.iter().zip(&self.grid_rmax) {
+            if rmax > 0.0 && !g.visit(c, reach + rmax, &mut f) {
                 return false;
             }
         }
@@ -387,7 +424,8 @@ impl<'a> Filler<'a> {
         self.on_face.push(bits);
         self.drawn.push(drawn);
         let g = usize::from(r > self.split);
-        self.grids[g].insert(i as u32, c, r);
+        self.grids[g].insert(i as u32, c);
+        self.grid_rmax[g] = self.grid_rmax[g].max(r);
         self.vol_sum += 4.0 / 3.0 * PI * r * r * r;
         for f in 0..6 {
             let bit = match self.mode {
@@ -548,9 +586,10 @@ impl<'a> Filler<'a> {
             .find(|&c| self.valid(c, r, phase))
     }
 
-    fn progress(&self, ctx: &RunContext) -> Result<(), StageError> {
+    fn progress(&self, ctx: &RunContext) -> Result<(), FillError> {
         let done = (self.body_fraction() * 1000.0) as u64;
         ctx.progress(done, (self.set.body_goal * 1000.0) as u64)
+            .map_err(|_| FillError::Cancelled)
     }
 
     /// Runs one site-based phase until `goal` holds, the sites are exhausted, or
@@ -560,7 +599,7 @@ impl<'a> Filler<'a> {
         phase: Phase,
         goal: impl Fn(&Self) -> bool,
         ctx: &RunContext,
-    ) -> Result<(bool, u64), StageError> {
+    ) -> Result<(bool, u64), FillError> {
         let mut sites = Vec::new();
         for s in 0..self.pos.len() {
             self.add_sites(s, phase, &mut sites);
@@ -774,32 +813,30 @@ impl<'a> Filler<'a> {
         }
     }
 
-    fn fail_or_warn(&self, what: String, ctx: &RunContext) -> Result<(), StageError> {
-        let msg = format!(
-            "{}: {what} after {} draws ({} rejected; a phase stops after {} rejections in a \
-             row or a rejected fraction above {}): the {} is saturated; lower the goal, enlarge \
-             the brick, or set require_goals: false",
-            self.set.stage,
-            self.stats.draws,
-            self.stats.rejected,
-            self.set.max_consecutive_rejections,
-            self.set.max_rejected_fraction,
-            if what.starts_with("body") {
+    fn fail_or_warn(&self, what: String, ctx: &RunContext) -> Result<(), FillError> {
+        let e = FillError::Saturated {
+            stage: self.set.stage,
+            region: if what.starts_with("body") {
                 "volume"
             } else {
                 "face"
-            }
-        );
+            },
+            what,
+            draws: self.stats.draws,
+            rejected: self.stats.rejected,
+            max_consecutive: self.set.max_consecutive_rejections,
+            max_fraction: self.set.max_rejected_fraction,
+        };
         if self.set.require_goals {
-            Err(StageError::failed(msg))
+            Err(e)
         } else {
-            ctx.warn(&msg);
+            ctx.warn(&e.to_string());
             Ok(())
         }
     }
 
     /// Fills the unit brick: corners, edges, faces, volume.
-    pub fn fill(&mut self, ctx: &RunContext) -> Result<(), StageError> {
+    pub fn fill(&mut self, ctx: &RunContext) -> Result<(), FillError> {
         self.corners();
         let mut reached = true;
         match self.mode {

@@ -6,11 +6,13 @@
 
 pub mod assemble;
 pub mod fill;
-pub mod grid;
 pub mod sdf;
 pub mod stages;
 
-pub use stages::{Curved, CurvedParams, Method1, Method1Params, Method2, Method2Params};
+pub use stages::{
+    BoxParams, BrickParams, Curved, CurvedParams, Method1, Method1Params, Method2, Method2Params,
+    UnitBrick,
+};
 
 /// Registers the brick stages.
 pub fn register(r: &mut grainpipe_core::Registry) {

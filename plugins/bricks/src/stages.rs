@@ -4,11 +4,12 @@ use crate::assemble::{self, Assembly};
 use crate::fill::{FillSettings, FillStats, Filler, Mode};
 use crate::sdf::Sdf;
 use grainpipe_core::distributions::{ks_critical_value, ks_distance, SizeDistribution};
+use grainpipe_core::params::{ParamSpec, ParamType, Params};
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
-    Artifact, ArtifactKind, Body, BodyAttribute, ContactGraph, Domain, ExcludedSolid, InputMetas,
-    Inputs, Outputs, Packing, ParamSpec, PortSpec, Preflight, RunContext, StageError, StageInfo,
-    Table, TypedStage, FACE_NAMES,
+    params, Artifact, ArtifactKind, ArtifactMeta, Body, BodyAttribute, ContactGraph, Domain,
+    ExcludedSolid, InputMetas, Inputs, Outputs, Packing, PortSpec, Preflight, RunContext,
+    StageError, StageInfo, Table, TypedStage, FACE_NAMES,
 };
 use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
@@ -16,69 +17,112 @@ use std::f64::consts::PI;
 /// Spheres above which preflight refuses a run (about 4 GB of output at ~400 B per sphere).
 const MAX_SPHERES: f64 = 1e7;
 
-macro_rules! brick_params {
-    ($name:ident, $doc:literal, face $fg:expr, body $bg:expr, contact $cp:expr, std $sl:expr,
-     require $rq:expr, rejections $mr:expr, fraction $mf:expr) => {
-        #[doc = $doc]
-        #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-        #[serde(deny_unknown_fields, default)]
-        pub struct $name {
-            pub radius: SizeDistribution,
-            pub face_goal: f64,
-            pub body_goal: f64,
-            pub contact_parameter: f64,
-            pub parent_parameter: f64,
-            pub brick_sides: [f64; 3],
-            pub std_length: f64,
-            pub brick_numbers: [usize; 3],
-            pub require_goals: bool,
-            pub max_consecutive_rejections: u64,
-            pub max_rejected_fraction: f64,
-        }
-
-        impl Default for $name {
-            fn default() -> Self {
-                $name {
-                    radius: SizeDistribution::default(),
-                    face_goal: $fg,
-                    body_goal: $bg,
-                    contact_parameter: $cp,
-                    parent_parameter: 0.5,
-                    brick_sides: [1.0, 1.0, 1.0],
-                    std_length: $sl,
-                    brick_numbers: [2, 2, 1],
-                    require_goals: $rq,
-                    max_consecutive_rejections: $mr,
-                    max_rejected_fraction: $mf,
-                }
-            }
-        }
-
-        impl $name {
-            fn common(&self) -> Common<'_> {
-                Common {
-                    radius: &self.radius,
-                    face_goal: self.face_goal,
-                    body_goal: self.body_goal,
-                    contact_parameter: self.contact_parameter,
-                    parent_parameter: self.parent_parameter,
-                    brick_sides: self.brick_sides,
-                    std_length: self.std_length,
-                    brick_numbers: self.brick_numbers,
-                    require_goals: self.require_goals,
-                    max_consecutive_rejections: self.max_consecutive_rejections,
-                    max_rejected_fraction: self.max_rejected_fraction,
-                }
-            }
-        }
-    };
+/// The defaults that differ between the brick stages (each follows one of the paper's
+/// examples). Implemented by the markers [`Method1Defaults`], [`Method2Defaults`] and
+/// [`CurvedDefaults`], which [`BrickParams`] carries as an empty flattened group.
+pub trait StageDefaults: Params + Copy {
+    const FACE_GOAL: f64;
+    const BODY_GOAL: f64;
+    const CONTACT_PARAMETER: f64;
+    const STD_LENGTH: f64;
+    const REQUIRE_GOALS: bool;
+    const MAX_CONSECUTIVE_REJECTIONS: u64;
+    const MAX_REJECTED_FRACTION: f64;
 }
 
-brick_params!(Method1Params, "Parameters of `bricks.method1` (defaults: the paper's Example 1A).",
-    face 0.8, body 0.55, contact 0.2, std 15.0, require true, rejections 100, fraction 1.0);
-brick_params!(Method2Params, "Parameters of `bricks.method2` (defaults: the paper's Example 2 \
-    goals with the Weibull law of eq. (2.4), Table 3).",
-    face 1.0, body 0.9, contact 0.1, std 30.0, require false, rejections 30, fraction 0.25);
+macro_rules! stage_defaults {
+    ($($(#[$doc:meta])* $name:ident = [$fg:expr, $bg:expr, $cp:expr, $sl:expr, $rq:expr, $mr:expr, $mf:expr];)*) => {$(
+        $(#[$doc])*
+        #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+        pub struct $name {}
+
+        impl StageDefaults for $name {
+            const FACE_GOAL: f64 = $fg;
+            const BODY_GOAL: f64 = $bg;
+            const CONTACT_PARAMETER: f64 = $cp;
+            const STD_LENGTH: f64 = $sl;
+            const REQUIRE_GOALS: bool = $rq;
+            const MAX_CONSECUTIVE_REJECTIONS: u64 = $mr;
+            const MAX_REJECTED_FRACTION: f64 = $mf;
+        }
+
+        /// Declares no parameter: it only selects defaults.
+        impl Params for $name {
+            fn specs() -> Vec<ParamSpec> {
+                Vec::new()
+            }
+        }
+    )*};
+}
+
+// face_goal, body_goal, contact_parameter, std_length, require_goals,
+// max_consecutive_rejections, max_rejected_fraction
+stage_defaults! {
+    /// Defaults of `bricks.method1`: the paper's Example 1A.
+    Method1Defaults = [0.8, 0.55, 0.2, 15.0, true, 100, 1.0];
+    /// Defaults of `bricks.method2`: the paper's Example 2 goals with the Weibull law of
+    /// eq. (2.4), Table 3.
+    Method2Defaults = [1.0, 0.9, 0.1, 30.0, false, 30, 0.25];
+    /// Defaults of `bricks.curved`: the paper's Example 3A.
+    CurvedDefaults = [0.4, 0.4, 0.1, 30.0, true, 100, 1.0];
+}
+
+/// The parameters every brick stage shares, flattened into each stage's parameters; `D`
+/// selects the stage's defaults.
+#[params]
+pub struct BrickParams<D: StageDefaults> {
+    /// Sphere radius law (Matlab makedist equivalent); default Weibull scale 15.7 um, shape 3.55 (eq. 2.4).
+    pub radius: SizeDistribution,
+    /// FaceGoal: fraction of each filled face covered by the projections of the spheres on it.
+    #[param(default = D::FACE_GOAL, ty = "number in (0, 1]")]
+    pub face_goal: f64,
+    /// BodyGoal: fraction of the unit-brick (domain) volume filled by spheres.
+    #[param(default = D::BODY_GOAL, ty = "number in (0, 1]")]
+    pub body_goal: f64,
+    /// SphereContactParameter: spheres (and faces) with gaps up to this times the mean radius are in contact.
+    #[param(default = D::CONTACT_PARAMETER, ty = "number in [0, 1]")]
+    pub contact_parameter: f64,
+    /// ParentParameter: spheres with gaps up to this times the mean radius are parents of new spheres.
+    #[param(default = 0.5, ty = "number in (0, 1]")]
+    pub parent_parameter: f64,
+    /// BrickSideLengths as multiples of std_length.
+    #[param(default = [1.0, 1.0, 1.0])]
+    pub brick_sides: [f64; 3],
+    /// Reference length in mean radii (paper: 15 or 30 r_mean).
+    #[param(default = D::STD_LENGTH)]
+    pub std_length: f64,
+    /// Fail when a face or the volume saturates below its goal (false: warn and keep the saturated fill).
+    #[param(default = D::REQUIRE_GOALS)]
+    pub require_goals: bool,
+    /// A phase is saturated after this many rejected radius draws in a row.
+    #[param(default = D::MAX_CONSECUTIVE_REJECTIONS)]
+    pub max_consecutive_rejections: u64,
+    /// A phase is saturated once this fraction of its draws (after 100) was rejected; bounds the radius-law distortion (KS <= q/(1-q)). 1 = off.
+    #[param(default = D::MAX_REJECTED_FRACTION, ty = "number in (0, 1]")]
+    pub max_rejected_fraction: f64,
+    /// Selects the defaults above; declares no parameter. (`bound = ""`: serde takes the
+    /// bounds on `D` from `StageDefaults` instead of adding its own.)
+    #[param(flatten)]
+    #[serde(bound = "")]
+    pub defaults: D,
+}
+
+/// Parameters of `bricks.method1` and `bricks.method2`: a box-shaped unit brick, tiled.
+#[params]
+pub struct BoxParams<D: StageDefaults> {
+    #[param(flatten)]
+    #[serde(bound = "")]
+    pub common: BrickParams<D>,
+    /// BrickNumbers: unit bricks along x, y, z in the total domain.
+    #[param(default = [2, 2, 1])]
+    pub brick_numbers: [usize; 3],
+}
+
+/// Parameters of `bricks.method1` (defaults: the paper's Example 1A).
+pub type Method1Params = BoxParams<Method1Defaults>;
+/// Parameters of `bricks.method2` (defaults: the paper's Example 2 goals with the Weibull law
+/// of eq. (2.4), Table 3).
+pub type Method2Params = BoxParams<Method2Defaults>;
 
 /// A sphere cut out of the `bricks.curved` domain, in absolute coordinates (brick corner at 0).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -88,58 +132,70 @@ pub struct ExcludedSphere {
     pub radius: Q<Length>,
 }
 
-/// Parameters of `bricks.curved` (defaults: the paper's Example 3A).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct CurvedParams {
-    pub radius: SizeDistribution,
-    pub face_goal: f64,
-    pub body_goal: f64,
-    pub contact_parameter: f64,
-    pub parent_parameter: f64,
-    pub brick_sides: [f64; 3],
-    pub std_length: f64,
-    pub hemisphere_radii: [f64; 2],
-    pub excluded_spheres: Vec<ExcludedSphere>,
-    pub filled_faces: Vec<String>,
-    pub require_goals: bool,
-    pub max_consecutive_rejections: u64,
-    pub max_rejected_fraction: f64,
-}
-
-impl Default for CurvedParams {
-    fn default() -> Self {
-        CurvedParams {
-            radius: SizeDistribution::default(),
-            face_goal: 0.4,
-            body_goal: 0.4,
-            contact_parameter: 0.1,
-            parent_parameter: 0.5,
-            brick_sides: [1.0, 1.0, 1.0],
-            std_length: 30.0,
-            hemisphere_radii: [0.5, 0.5],
-            excluded_spheres: Vec::new(),
-            filled_faces: ["ymin", "ymax", "zmin", "zmax"].map(String::from).to_vec(),
-            require_goals: true,
-            max_consecutive_rejections: 100,
-            max_rejected_fraction: 1.0,
-        }
+impl ParamType for ExcludedSphere {
+    fn type_name() -> String {
+        "{center: [x, y, z], radius}".to_string()
+    }
+    fn unit() -> &'static str {
+        "m"
+    }
+    fn schema() -> serde_json::Value {
+        serde_json::json!({
+            "type": "object",
+            "required": ["center", "radius"],
+            "additionalProperties": false,
+            "properties": {
+                "center": <[Q<Length>; 3]>::schema(),
+                "radius": Q::<Length>::schema(),
+            }
+        })
     }
 }
 
-/// The parameters every brick stage shares, borrowed.
-struct Common<'a> {
-    radius: &'a SizeDistribution,
-    face_goal: f64,
-    body_goal: f64,
-    contact_parameter: f64,
-    parent_parameter: f64,
-    brick_sides: [f64; 3],
-    std_length: f64,
-    brick_numbers: [usize; 3],
-    require_goals: bool,
-    max_consecutive_rejections: u64,
-    max_rejected_fraction: f64,
+/// Parameters of `bricks.curved` (defaults: the paper's Example 3A).
+#[params]
+pub struct CurvedParams {
+    #[param(flatten)]
+    pub common: BrickParams<CurvedDefaults>,
+    /// HemisphereRadii as multiples of std_length: balls centred on the x faces, cut from the brick (0 = none; at most half the smallest side).
+    #[param(default = [0.5, 0.5])]
+    pub hemisphere_radii: [f64; 2],
+    /// Further balls cut from the domain (brick corner at the origin).
+    pub excluded_spheres: Vec<ExcludedSphere>,
+    /// Planar faces covered before the volume (paper Example 3: the y and z faces).
+    #[param(
+        default = ["ymin", "ymax", "zmin", "zmax"].map(String::from).to_vec(),
+        ty = "list of: xmin, xmax, ymin, ymax, zmin, zmax"
+    )]
+    pub filled_faces: Vec<String>,
+}
+
+/// What preflight works out and run fills: the unit brick and its domain.
+#[derive(Clone, Debug)]
+pub struct UnitBrick {
+    /// Side lengths [m].
+    pub sides: [f64; 3],
+    /// The domain as a signed distance (a box, or a box minus balls).
+    pub sdf: Sdf,
+    /// Planar faces filled before the volume, in `FACE_NAMES` order.
+    pub faces: [bool; 6],
+    /// Solids cut out of the domain, recorded in the packing.
+    pub excluded: Vec<ExcludedSolid>,
+}
+
+impl UnitBrick {
+    /// A plain box of the given sides, every face filled.
+    fn plain(sides: [f64; 3]) -> Self {
+        UnitBrick {
+            sides,
+            sdf: Sdf::Box {
+                min: [0.0; 3],
+                max: sides,
+            },
+            faces: [true; 6],
+            excluded: Vec::new(),
+        }
+    }
 }
 
 fn unit_interval(key: &str, v: f64, open_zero: bool) -> Result<(), StageError> {
@@ -157,9 +213,15 @@ fn unit_interval(key: &str, v: f64, open_zero: bool) -> Result<(), StageError> {
     }
 }
 
-impl Common<'_> {
-    /// Validates and returns (mean radius, unit brick side lengths).
-    fn check(&self, min_sides_in_radii: f64) -> Result<(f64, [f64; 3]), StageError> {
+impl<D: StageDefaults> BrickParams<D> {
+    /// Validates; returns (mean radius, unit brick side lengths). `numbers` are the unit
+    /// bricks per axis, for the size limit reported on `count_key`.
+    fn check(
+        &self,
+        min_sides_in_radii: f64,
+        numbers: [usize; 3],
+        count_key: &str,
+    ) -> Result<(f64, [f64; 3]), StageError> {
         self.radius
             .validate()
             .map_err(|(k, m)| StageError::param(&format!("radius.{k}"), m))?;
@@ -194,12 +256,6 @@ impl Common<'_> {
                 ));
             }
         }
-        if self.brick_numbers.contains(&0) {
-            return Err(StageError::param(
-                "brick_numbers",
-                "every count must be >= 1",
-            ));
-        }
         unit_interval("max_rejected_fraction", self.max_rejected_fraction, true)?;
         if self.max_consecutive_rejections == 0 {
             return Err(StageError::param(
@@ -209,10 +265,10 @@ impl Common<'_> {
         }
         let rmean = self.radius.mean();
         let sides = self.brick_sides.map(|s| s * self.std_length * rmean);
-        let est = self.estimate_spheres(rmean, sides);
+        let est = self.estimate_spheres(rmean, sides, numbers);
         if est > MAX_SPHERES {
             return Err(StageError::param(
-                "brick_numbers",
+                count_key,
                 format!(
                     "about {est:.3e} spheres would be made (limit {MAX_SPHERES:e}); use fewer \
                      or smaller bricks"
@@ -222,11 +278,11 @@ impl Common<'_> {
         Ok((rmean, sides))
     }
 
-    fn estimate_spheres(&self, rmean: f64, sides: [f64; 3]) -> f64 {
+    fn estimate_spheres(&self, rmean: f64, sides: [f64; 3], numbers: [usize; 3]) -> f64 {
         let v: f64 = sides.iter().product();
         // Packing fractions above ~0.7 are not reached; the face copies add at most ~30 %.
         let per_brick = 1.3 * v * self.body_goal.min(0.7) / (4.0 / 3.0 * PI * rmean.powi(3));
-        per_brick * self.brick_numbers.iter().product::<usize>() as f64
+        per_brick * numbers.iter().product::<usize>() as f64
     }
 
     fn settings(&self, stage: &'static str, faces: [bool; 6]) -> FillSettings {
@@ -241,99 +297,82 @@ impl Common<'_> {
             stage,
         }
     }
+
+    /// The announcement of every brick stage: the box `[0, sides x numbers]` (not periodic,
+    /// also for Method 2, whose tiled bed closes its own faces), the estimated sphere count and
+    /// mean diameter, and a one-row report. The unit brick goes to `run` as the plan.
+    fn preflight(
+        &self,
+        info: &StageInfo,
+        rmean: f64,
+        numbers: [usize; 3],
+        brick: UnitBrick,
+    ) -> Preflight<UnitBrick> {
+        let n = self.estimate_spheres(rmean, brick.sides, numbers);
+        // The same product as `assemble`, so the announced box is the produced one exactly.
+        let size = [0, 1, 2].map(|a| brick.sides[a] * numbers[a] as f64);
+        Preflight::from_info(info, (n * 400.0) as u64)
+            .announce(
+                "packing",
+                ArtifactMeta::packing([0.0; 3], size, [false; 3])
+                    .with_count(n as u64, None)
+                    .with_length_scale(2.0 * rmean),
+            )
+            .announce(
+                "contacts",
+                ArtifactMeta::of(ArtifactKind::ContactGraph).with_count(n as u64, None),
+            )
+            .announce(
+                "report",
+                ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
+            )
+            .with_plan(brick)
+    }
+
+    /// The run of every brick stage: fill the unit brick, tile it, find contacts and faces.
+    fn run(
+        &self,
+        stage: &'static str,
+        brick: &UnitBrick,
+        mode: Mode,
+        numbers: [usize; 3],
+        tile: fn(&Filler, [usize; 3]) -> Assembly,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let mut f = Filler::new(
+            mode,
+            brick.sides,
+            &brick.sdf,
+            &self.radius,
+            self.settings(stage, brick.faces),
+            ctx.rng(),
+        );
+        f.fill(ctx)?;
+        let asm = tile(&f, numbers);
+        Ok(finish(&f, asm, mode, self, brick.excluded.clone()))
+    }
 }
 
-fn common_params(curved: bool) -> Vec<ParamSpec> {
-    let mut v = vec![
-        ParamSpec {
-            name: "radius",
-            ty: "size distribution {kind: weibull|gamma|normal|lognormal|exponential|uniform|beta|triangular|tabulated|fixed, ...}",
-            unit: "m",
-            doc: "Sphere radius law (Matlab makedist equivalent); default Weibull scale 15.7 um, shape 3.55 (eq. 2.4).",
-        },
-        ParamSpec {
-            name: "face_goal",
-            ty: "number in (0, 1]",
-            unit: "",
-            doc: "FaceGoal: fraction of each filled face covered by the projections of the spheres on it.",
-        },
-        ParamSpec {
-            name: "body_goal",
-            ty: "number in (0, 1]",
-            unit: "",
-            doc: "BodyGoal: fraction of the unit-brick (domain) volume filled by spheres.",
-        },
-        ParamSpec {
-            name: "contact_parameter",
-            ty: "number in [0, 1]",
-            unit: "",
-            doc: "SphereContactParameter: spheres (and faces) with gaps up to this times the mean radius are in contact.",
-        },
-        ParamSpec {
-            name: "parent_parameter",
-            ty: "number in (0, 1]",
-            unit: "",
-            doc: "ParentParameter: spheres with gaps up to this times the mean radius are parents of new spheres.",
-        },
-        ParamSpec {
-            name: "brick_sides",
-            ty: "[x, y, z]",
-            unit: "std_length",
-            doc: "BrickSideLengths as multiples of std_length.",
-        },
-        ParamSpec {
-            name: "std_length",
-            ty: "number",
-            unit: "mean radii",
-            doc: "Reference length in mean radii (paper: 15 or 30 r_mean).",
-        },
-    ];
-    if curved {
-        v.push(ParamSpec {
-            name: "hemisphere_radii",
-            ty: "[r_xmin, r_xmax]",
-            unit: "std_length",
-            doc: "HemisphereRadii: balls centred on the x faces, cut from the brick (0 = none; at most half the smallest side).",
-        });
-        v.push(ParamSpec {
-            name: "excluded_spheres",
-            ty: "list of {center: [x, y, z], radius}",
-            unit: "m",
-            doc: "Further balls cut from the domain (brick corner at the origin).",
-        });
-        v.push(ParamSpec {
-            name: "filled_faces",
-            ty: "list of xmin|xmax|ymin|ymax|zmin|zmax",
-            unit: "",
-            doc: "Planar faces covered before the volume (paper Example 3: the y and z faces).",
-        });
-    } else {
-        v.push(ParamSpec {
-            name: "brick_numbers",
-            ty: "[m, n, p]",
-            unit: "",
-            doc: "BrickNumbers: unit bricks along x, y, z in the total domain.",
-        });
+impl<D: StageDefaults> BoxParams<D> {
+    /// Validates; returns the plain unit brick with the announcement.
+    fn preflight(
+        &self,
+        info: &StageInfo,
+        min_sides_in_radii: f64,
+    ) -> Result<Preflight<UnitBrick>, StageError> {
+        if self.brick_numbers.contains(&0) {
+            return Err(StageError::param(
+                "brick_numbers",
+                "every count must be >= 1",
+            ));
+        }
+        let (rmean, sides) =
+            self.common
+                .check(min_sides_in_radii, self.brick_numbers, "brick_numbers")?;
+        Ok(self
+            .common
+            .preflight(info, rmean, self.brick_numbers, UnitBrick::plain(sides)))
     }
-    v.push(ParamSpec {
-        name: "require_goals",
-        ty: "bool",
-        unit: "",
-        doc: "Fail when a face or the volume saturates below its goal (false: warn and keep the saturated fill).",
-    });
-    v.push(ParamSpec {
-        name: "max_consecutive_rejections",
-        ty: "integer",
-        unit: "",
-        doc: "A phase is saturated after this many rejected radius draws in a row.",
-    });
-    v.push(ParamSpec {
-        name: "max_rejected_fraction",
-        ty: "number in (0, 1]",
-        unit: "",
-        doc: "A phase is saturated once this fraction of its draws (after 100) was rejected; bounds the radius-law distortion (KS <= q/(1-q)). 1 = off.",
-    });
-    v
 }
 
 fn outputs() -> Vec<PortSpec> {
@@ -344,70 +383,15 @@ fn outputs() -> Vec<PortSpec> {
     ]
 }
 
-fn preflight_for(info: &StageInfo, c: &Common, min_side: f64) -> Result<Preflight, StageError> {
-    let (rmean, sides) = c.check(min_side)?;
-    let n = c.estimate_spheres(rmean, sides);
-    let mut pf = Preflight::from_info(info, (n * 400.0) as u64);
-    for m in pf.outputs.values_mut() {
-        if m.kind != ArtifactKind::Table {
-            m.count_estimate = n as u64;
-        }
-    }
-    Ok(pf)
-}
-
-/// The domain `bricks.curved` fills: sides, filled faces, signed distance, cut-outs.
-type CurvedDomain = ([f64; 3], [bool; 6], Sdf, Vec<ExcludedSolid>);
-
-/// The run of Method 1 and Method 2: fill one box-shaped unit brick, then tile it.
-fn run_box(
-    id: &'static str,
-    c: &Common,
-    mode: Mode,
-    factor: f64,
-    tile: fn(&Filler, [usize; 3]) -> Assembly,
-    ctx: &RunContext,
-) -> Result<Outputs, StageError> {
-    let (_, sides) = c.check(factor)?;
-    let sdf = Sdf::Box {
-        min: [0.0; 3],
-        max: sides,
-    };
-    let mut f = Filler::new(
-        mode,
-        sides,
-        sdf,
-        c.radius,
-        c.settings(id, [true; 6]),
-        ctx.rng(),
-    );
-    f.fill(ctx)?;
-    let asm = tile(&f, c.brick_numbers);
-    Ok(finish(
-        &f,
-        asm,
-        mode,
-        c.contact_parameter,
-        c.body_goal,
-        c.face_goal,
-        c.radius,
-        Vec::new(),
-    ))
-}
-
 /// Everything computed after the unit brick is filled.
-#[allow(clippy::too_many_arguments)]
-fn finish(
+fn finish<D: StageDefaults>(
     f: &Filler,
     asm: Assembly,
     mode: Mode,
-    contact_parameter: f64,
-    body_goal: f64,
-    face_goal: f64,
-    dist: &SizeDistribution,
+    c: &BrickParams<D>,
     excluded: Vec<ExcludedSolid>,
 ) -> Outputs {
-    let max_gap = contact_parameter * f.rmean;
+    let max_gap = c.contact_parameter * f.rmean;
     let contacts = assemble::contacts(&asm.pos, &asm.rad, asm.size, max_gap);
     let faces = assemble::face_lists(&asm, mode, max_gap);
     let drawn: Vec<f64> = f
@@ -417,7 +401,7 @@ fn finish(
         .filter(|(_, d)| **d)
         .map(|(r, _)| *r)
         .collect();
-    let ks = ks_distance(&drawn, dist);
+    let ks = ks_distance(&drawn, &c.radius);
     let mean_drawn = drawn.iter().sum::<f64>() / drawn.len().max(1) as f64;
     let st: &FillStats = &f.stats;
 
@@ -454,9 +438,9 @@ fn finish(
         .with_i64("draws", "", vec![st.draws as i64])
         .with_i64("rejected_draws", "", vec![st.rejected as i64])
         .with_f64("body_fraction", "", vec![st.body_fraction])
-        .with_f64("body_goal", "", vec![body_goal])
+        .with_f64("body_goal", "", vec![c.body_goal])
         .with_f64("face_fraction_min", "", vec![face_min])
-        .with_f64("face_goal", "", vec![face_goal]);
+        .with_f64("face_goal", "", vec![c.face_goal]);
     for (k, name) in FACE_NAMES.iter().enumerate() {
         t = t.with_f64(
             &format!("face_fraction_{name}"),
@@ -491,29 +475,38 @@ pub struct Method1;
 
 impl TypedStage for Method1 {
     type Params = Method1Params;
+    type Plan = UnitBrick;
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "bricks.method1",
-            version: "1.0.0",
-            doc: "Sphere filling Method 1 (sphere-filling paper, section 2): mean-radius spheres in the \
-                  8 corners of a unit brick, random-radius chains along the 12 edges, then the 6 \
-                  faces and the volume, every sphere touching 2 (face) or 3 (volume) parents and \
-                  lying inside the brick; faces and volume stop at FaceGoal / BodyGoal. The total \
-                  domain is built by reflecting the unit brick about its faces.",
-            params: common_params(false),
-            inputs: vec![],
-            outputs: outputs(),
-        }
-    }
-    fn preflight(&self, p: &Method1Params, _: &InputMetas) -> Result<Preflight, StageError> {
-        preflight_for(&self.info(), &p.common(), 4.0)
-    }
-    fn run(&self, p: &Method1Params, _: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
-        run_box(
+        StageInfo::new(
             "bricks.method1",
-            &p.common(),
+            "1.0.0",
+            "Sphere filling Method 1 (sphere-filling paper, section 2): mean-radius spheres in the \
+             8 corners of a unit brick, random-radius chains along the 12 edges, then the 6 \
+             faces and the volume, every sphere touching 2 (face) or 3 (volume) parents and \
+             lying inside the brick; faces and volume stop at FaceGoal / BodyGoal. The total \
+             domain is built by reflecting the unit brick about its faces.",
+        )
+        .outputs(outputs())
+    }
+    fn preflight(
+        &self,
+        p: &Method1Params,
+        _: &InputMetas,
+    ) -> Result<Preflight<UnitBrick>, StageError> {
+        p.preflight(&self.info(), 4.0)
+    }
+    fn run(
+        &self,
+        p: &Method1Params,
+        brick: &UnitBrick,
+        _: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        p.common.run(
+            "bricks.method1",
+            brick,
             Mode::Closed,
-            4.0,
+            p.brick_numbers,
             assemble::reflect,
             ctx,
         )
@@ -525,31 +518,40 @@ pub struct Method2;
 
 impl TypedStage for Method2 {
     type Params = Method2Params;
+    type Plan = UnitBrick;
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "bricks.method2",
-            version: "1.0.0",
-            doc: "Sphere filling Method 2 (sphere-filling paper, section 3): boundary spheres are \
-                  centred on the brick faces; one corner, one edge per axis and three faces are \
-                  filled and repeated on their opposites (the brick is periodic), then the volume. \
-                  Bricks are tiled by translation with a seamless fit. Fractions are those of the \
-                  tiled bed (each sphere counted once per period); the paper's goals 1.0 / 0.9 \
-                  exceed what non-overlapping spheres reach, so by default the fill stops when \
-                  saturated (require_goals: false).",
-            params: common_params(false),
-            inputs: vec![],
-            outputs: outputs(),
-        }
-    }
-    fn preflight(&self, p: &Method2Params, _: &InputMetas) -> Result<Preflight, StageError> {
-        preflight_for(&self.info(), &p.common(), 2.0)
-    }
-    fn run(&self, p: &Method2Params, _: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
-        run_box(
+        StageInfo::new(
             "bricks.method2",
-            &p.common(),
+            "1.0.0",
+            "Sphere filling Method 2 (sphere-filling paper, section 3): boundary spheres are \
+             centred on the brick faces; one corner, one edge per axis and three faces are \
+             filled and repeated on their opposites (the brick is periodic), then the volume. \
+             Bricks are tiled by translation with a seamless fit. Fractions are those of the \
+             tiled bed (each sphere counted once per period); the paper's goals 1.0 / 0.9 \
+             exceed what non-overlapping spheres reach, so by default the fill stops when \
+             saturated (require_goals: false).",
+        )
+        .outputs(outputs())
+    }
+    fn preflight(
+        &self,
+        p: &Method2Params,
+        _: &InputMetas,
+    ) -> Result<Preflight<UnitBrick>, StageError> {
+        p.preflight(&self.info(), 2.0)
+    }
+    fn run(
+        &self,
+        p: &Method2Params,
+        brick: &UnitBrick,
+        _: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        p.common.run(
+            "bricks.method2",
+            brick,
             Mode::Centered,
-            2.0,
+            p.brick_numbers,
             assemble::translate,
             ctx,
         )
@@ -561,26 +563,9 @@ impl TypedStage for Method2 {
 pub struct Curved;
 
 impl CurvedParams {
-    fn common(&self) -> Common<'_> {
-        Common {
-            radius: &self.radius,
-            face_goal: self.face_goal,
-            body_goal: self.body_goal,
-            contact_parameter: self.contact_parameter,
-            parent_parameter: self.parent_parameter,
-            brick_sides: self.brick_sides,
-            std_length: self.std_length,
-            brick_numbers: [1, 1, 1],
-            require_goals: self.require_goals,
-            max_consecutive_rejections: self.max_consecutive_rejections,
-            max_rejected_fraction: self.max_rejected_fraction,
-        }
-    }
-
-    /// Validates; returns (sides, faces, domain sdf, excluded solids).
-    fn build(&self) -> Result<CurvedDomain, StageError> {
-        let (_, sides) = self.common().check(4.0)?;
-        let std = sides[0] / self.brick_sides[0];
+    /// Validates the cut-outs and faces of the brick of `sides` [m]; builds its domain.
+    fn build(&self, sides: [f64; 3]) -> Result<UnitBrick, StageError> {
+        let std = sides[0] / self.common.brick_sides[0];
         let smallest = sides.iter().cloned().fold(f64::INFINITY, f64::min);
         let mut balls = Vec::new();
         for (k, h) in self.hemisphere_radii.iter().enumerate() {
@@ -643,52 +628,53 @@ impl CurvedParams {
             .into_iter()
             .map(|(center, radius)| ExcludedSolid::Sphere { center, radius })
             .collect();
-        Ok((sides, faces, sdf, excluded))
+        Ok(UnitBrick {
+            sides,
+            sdf,
+            faces,
+            excluded,
+        })
     }
 }
 
 impl TypedStage for Curved {
     type Params = CurvedParams;
+    type Plan = UnitBrick;
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "bricks.curved",
-            version: "1.0.0",
-            doc: "Sphere filling of a domain given by a signed distance function (sphere-filling \
-                  paper, section 4, Example 3): a brick minus two balls centred on the x faces \
-                  (hemispherical cavities) and any further balls. Corner spheres and edge chains \
-                  where the domain allows, then the chosen planar faces, then the volume, with the \
-                  Method 1 rules (spheres inside, parents touched).",
-            params: common_params(true),
-            inputs: vec![],
-            outputs: outputs(),
-        }
+        StageInfo::new(
+            "bricks.curved",
+            "1.0.0",
+            "Sphere filling of a domain given by a signed distance function (sphere-filling \
+             paper, section 4, Example 3): a brick minus two balls centred on the x faces \
+             (hemispherical cavities) and any further balls. Corner spheres and edge chains \
+             where the domain allows, then the chosen planar faces, then the volume, with the \
+             Method 1 rules (spheres inside, parents touched).",
+        )
+        .outputs(outputs())
     }
-    fn preflight(&self, p: &CurvedParams, _: &InputMetas) -> Result<Preflight, StageError> {
-        p.build()?;
-        preflight_for(&self.info(), &p.common(), 4.0)
+    fn preflight(
+        &self,
+        p: &CurvedParams,
+        _: &InputMetas,
+    ) -> Result<Preflight<UnitBrick>, StageError> {
+        let (rmean, sides) = p.common.check(4.0, [1; 3], "brick_sides")?;
+        let brick = p.build(sides)?;
+        Ok(p.common.preflight(&self.info(), rmean, [1; 3], brick))
     }
-    fn run(&self, p: &CurvedParams, _: &Inputs, ctx: &RunContext) -> Result<Outputs, StageError> {
-        let (sides, faces, sdf, excluded) = p.build()?;
-        let c = p.common();
-        let mut f = Filler::new(
+    fn run(
+        &self,
+        p: &CurvedParams,
+        brick: &UnitBrick,
+        _: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        p.common.run(
+            "bricks.curved",
+            brick,
             Mode::Closed,
-            sides,
-            sdf,
-            &p.radius,
-            c.settings("bricks.curved", faces),
-            ctx.rng(),
-        );
-        f.fill(ctx)?;
-        let asm = assemble::reflect(&f, [1, 1, 1]);
-        Ok(finish(
-            &f,
-            asm,
-            Mode::Closed,
-            p.contact_parameter,
-            p.body_goal,
-            p.face_goal,
-            &p.radius,
-            excluded,
-        ))
+            [1; 3],
+            assemble::reflect,
+            ctx,
+        )
     }
 }

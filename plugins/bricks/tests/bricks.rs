@@ -4,8 +4,12 @@
 // Loops over axes index several per-axis arrays at once.
 #![allow(clippy::needless_range_loop)]
 
-use grainpipe_bricks::{Curved, CurvedParams, Method1, Method1Params, Method2, Method2Params};
+use grainpipe_bricks::{
+    BrickParams, Curved, CurvedParams, Method1, Method1Params, Method2, Method2Params,
+};
 use grainpipe_core::distributions::{ks_critical_value, ks_distance, SizeDistribution};
+use grainpipe_core::engine::run_quietly;
+use grainpipe_core::pipeline::PipelineDoc;
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{
     ColumnData, ContactGraph, Outputs, Packing, Registry, RunContext, StageError, Table, TypedStage,
@@ -16,9 +20,16 @@ use std::f64::consts::PI;
 /// allow 1e-8 for round-off accumulated through reflections and translations.
 const OVERLAP_TOL: f64 = 1e-8;
 
+/// Preflight and run, and, as the engine does, hold every output to its announcement.
 fn run<T: TypedStage>(stage: &T, p: &T::Params) -> Result<Outputs, StageError> {
     let rep = SilentReporter;
-    stage.run(p, &Default::default(), &RunContext::new(7, &rep))
+    let pf = stage.preflight(p, &Default::default())?;
+    let o = stage.run(p, &pf.plan, &Default::default(), &RunContext::new(7, &rep))?;
+    for (port, meta) in &pf.outputs {
+        meta.check(&o[port])
+            .unwrap_or_else(|e| panic!("{port}: {e}"));
+    }
+    Ok(o)
 }
 
 fn parts(o: &Outputs) -> (&Packing, &ContactGraph, &Table) {
@@ -90,6 +101,23 @@ fn registry_is_consistent() {
     assert!(r.stage("bricks.method1").is_some());
     assert!(r.stage("bricks.method2").is_some());
     assert!(r.stage("bricks.curved").is_some());
+    // One declaration of the shared parameters, flattened into each stage with its own
+    // defaults (the paper's examples 1A, 2 and 3A).
+    let default = |id: &str, name: &str| {
+        let info = r.stage(id).unwrap().stage.info().clone();
+        info.params
+            .iter()
+            .find(|p| p.name == name)
+            .map(|p| p.default.clone())
+    };
+    assert_eq!(default("bricks.method1", "face_goal"), Some(0.8.into()));
+    assert_eq!(default("bricks.method2", "face_goal"), Some(1.0.into()));
+    assert_eq!(default("bricks.curved", "face_goal"), Some(0.4.into()));
+    assert_eq!(
+        default("bricks.method2", "require_goals"),
+        Some(false.into())
+    );
+    assert_eq!(default("bricks.curved", "brick_numbers"), None);
     // Params arrive as JSON from YAML: units in strings, typos refused with the key named.
     let st = &r.stage("bricks.method2").unwrap().stage;
     let v = st
@@ -103,7 +131,8 @@ fn registry_is_consistent() {
         .normalize_params(&serde_json::json!({"face_gaol": 1.0}))
         .unwrap_err();
     assert!(
-        matches!(e, StageError::InvalidParam { ref key, .. } if key == "face_gaol"),
+        matches!(e, StageError::UnknownParam { ref key, ref suggestion }
+            if key == "face_gaol" && suggestion.as_deref() == Some("face_goal")),
         "{e}"
     );
 }
@@ -113,7 +142,10 @@ fn preflight_names_the_bad_parameter() {
     let e = Method1
         .preflight(
             &Method1Params {
-                face_goal: 1.5,
+                common: BrickParams {
+                    face_goal: 1.5,
+                    ..Default::default()
+                },
                 ..Default::default()
             },
             &Default::default(),
@@ -123,11 +155,14 @@ fn preflight_names_the_bad_parameter() {
     let e = Method1
         .preflight(
             &Method1Params {
-                radius: SizeDistribution::Weibull {
-                    scale: grainpipe_core::units::Q::new(15.7e-6),
-                    shape: -1.0,
-                    min: None,
-                    max: None,
+                common: BrickParams {
+                    radius: SizeDistribution::Weibull {
+                        scale: grainpipe_core::units::Q::new(15.7e-6),
+                        shape: -1.0,
+                        min: None,
+                        max: None,
+                    },
+                    ..Default::default()
                 },
                 ..Default::default()
             },
@@ -139,7 +174,10 @@ fn preflight_names_the_bad_parameter() {
     let e = Method1
         .preflight(
             &Method1Params {
-                std_length: 3.0,
+                common: BrickParams {
+                    std_length: 3.0,
+                    ..Default::default()
+                },
                 ..Default::default()
             },
             &Default::default(),
@@ -156,7 +194,7 @@ fn method1_example_1a_meets_goals_without_overlap() {
     let rmean = val(t, "mean_radius_target");
     // Paper eq. (2.3)-(2.4): mean radius 14.137 um.
     assert!((rmean / 14.1367e-6 - 1.0).abs() < 1e-4);
-    check_pairs(pk, g, rmean, p.contact_parameter);
+    check_pairs(pk, g, rmean, p.common.contact_parameter);
     let n_unit = val(t, "spheres_unit_brick") as usize;
     assert_eq!(
         pk.bodies.len(),
@@ -177,7 +215,7 @@ fn method1_example_1a_meets_goals_without_overlap() {
     // Every sphere lies inside the total domain, and the face lists are exactly the spheres
     // within the contact distance of each face (the paper's ListXmin .. ListZmax).
     let size = pk.domain.max;
-    let tol = p.contact_parameter * rmean;
+    let tol = p.common.contact_parameter * rmean;
     for (i, s) in spheres(pk).iter().enumerate() {
         for a in 0..3 {
             assert!(
@@ -216,8 +254,11 @@ fn method1_example_1b_ks_distance_is_bounded() {
     // |F_a - F| <= q / (1 - q) for any acceptance rule (0 <= acceptance <= 1), so the sample
     // KS distance is below q/(1-q) plus the sampling bound 1.95/sqrt(n) (alpha = 0.001).
     let p = Method1Params {
-        std_length: 30.0,
-        contact_parameter: 0.1,
+        common: BrickParams {
+            std_length: 30.0,
+            contact_parameter: 0.1,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let o = run(&Method1, &p).unwrap();
@@ -236,13 +277,16 @@ fn method1_example_1b_ks_distance_is_bounded() {
 #[test]
 fn method2_tiles_seamlessly() {
     let p = Method2Params {
-        std_length: 15.0,
+        common: BrickParams {
+            std_length: 15.0,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let o = run(&Method2, &p).unwrap();
     let (pk, g, t) = parts(&o);
     let rmean = val(t, "mean_radius_target");
-    check_pairs(pk, g, rmean, p.contact_parameter);
+    check_pairs(pk, g, rmean, p.common.contact_parameter);
     let s = spheres(pk);
     let size = pk.domain.max;
     let key = |i: usize, drop: usize| {
@@ -278,10 +322,12 @@ fn method2_tiles_seamlessly() {
 #[test]
 fn same_seed_same_bed_on_any_thread_count() {
     let p = Method2Params {
-        std_length: 15.0,
-        brick_sides: [1.0, 1.0, 0.24],
+        common: BrickParams {
+            std_length: 15.0,
+            brick_sides: [1.0, 1.0, 0.24],
+            ..Default::default()
+        },
         brick_numbers: [3, 3, 1],
-        ..Default::default()
     };
     let go = |threads: usize| {
         rayon::ThreadPoolBuilder::new()
@@ -300,7 +346,10 @@ fn same_seed_same_bed_on_any_thread_count() {
 fn impossible_goal_fails_clearly() {
     // Random packings of unequal spheres stay far below 0.95 (the FCC lattice is 0.74).
     let p = Method1Params {
-        body_goal: 0.95,
+        common: BrickParams {
+            body_goal: 0.95,
+            ..Default::default()
+        },
         ..Default::default()
     };
     let e = run(&Method1, &p).unwrap_err();
@@ -326,7 +375,7 @@ fn curved_example_3a_stays_in_the_domain() {
     let o = run(&Curved, &p).unwrap();
     let (pk, g, t) = parts(&o);
     let rmean = val(t, "mean_radius_target");
-    check_pairs(pk, g, rmean, p.contact_parameter);
+    check_pairs(pk, g, rmean, p.common.contact_parameter);
     let l = 30.0 * rmean;
     let hr = 0.5 * l;
     // Domain volume: cube minus two hemispheres, 1 - pi/6 of the cube (midpoint rule on 160^3
@@ -358,34 +407,25 @@ fn curved_example_3a_stays_in_the_domain() {
         .map(|s| s.1)
         .filter(|r| *r != rmean)
         .collect();
-    let ks = ks_distance(&drawn, &p.radius);
+    let ks = ks_distance(&drawn, &p.common.radius);
     assert!((ks - val(t, "ks_distance")).abs() < 1e-12, "{ks}");
 }
 
 #[test]
 fn powderbed_pipeline_builds_the_paper_bed() {
-    // pipelines/powderbed.yaml, step `bed`, run through the registry as the engine does.
-    let path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../pipelines/powderbed.yaml");
-    let doc = grainpipe_core::pipeline::PipelineDoc::load(&path).unwrap();
-    let (_, step) = doc.step("bed").unwrap();
-    assert_eq!(step.uses, "bricks.method2");
+    // pipelines/powderbed.yaml, step `bed` alone (the rest needs other crates' stages and
+    // exporters), planned and run by the engine, which checks the announced metadata.
+    let root = grainpipe_core::testing::workspace_root(env!("CARGO_MANIFEST_DIR"));
+    let mut doc = PipelineDoc::load(&root.join("pipelines/powderbed.yaml")).unwrap();
+    doc.steps.retain(|s| s.id == "bed");
+    doc.exports.clear();
+    assert_eq!(doc.steps[0].uses, "bricks.method2");
     let mut r = Registry::new();
     grainpipe_bricks::register(&mut r);
-    let st = &r.stage(&step.uses).unwrap().stage;
-    let params = st
-        .normalize_params(&serde_json::Value::Object(step.params.clone()))
-        .unwrap();
-    st.preflight(&params, &Default::default()).unwrap();
-    let rep = SilentReporter;
-    let o = st
-        .run(
-            &params,
-            &Default::default(),
-            &RunContext::new(doc.seed, &rep),
-        )
-        .unwrap();
-    let (pk, g, t) = parts(&o);
+    let res = run_quietly(&doc, &r).unwrap();
+    let pk = res.artifact("bed.packing").as_packing().unwrap();
+    let g = res.artifact("bed.contacts").as_contact_graph().unwrap();
+    let t = res.table("bed.report");
     // Paper section 5.2: "a domain of size ~ 2545 x 2545 x 50.89 um" = 6 x 30 r_mean and
     // 0.12 x 30 r_mean with r_mean = 14.137 um (4 significant digits quoted).
     let size = pk.domain.max;
@@ -404,18 +444,20 @@ fn curved_domain_takes_any_cut_out_ball() {
     let l = 20.0 * rmean;
     let q = grainpipe_core::units::Q::new;
     let p = CurvedParams {
-        std_length: 20.0,
+        common: BrickParams {
+            std_length: 20.0,
+            ..Default::default()
+        },
         hemisphere_radii: [0.0, 0.0],
         excluded_spheres: vec![grainpipe_bricks::stages::ExcludedSphere {
             center: [q(0.5 * l), q(0.5 * l), q(0.5 * l)],
             radius: q(0.3 * l),
         }],
         filled_faces: vec!["zmin".into()],
-        ..Default::default()
     };
     let o = run(&Curved, &p).unwrap();
     let (pk, g, t) = parts(&o);
-    check_pairs(pk, g, rmean, p.contact_parameter);
+    check_pairs(pk, g, rmean, p.common.contact_parameter);
     for s in spheres(pk) {
         let d = ((0..3).map(|a| (s.0[a] - 0.5 * l).powi(2)).sum::<f64>()).sqrt();
         assert!(

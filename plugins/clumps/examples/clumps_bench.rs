@@ -12,7 +12,7 @@
 use grainpipe_clumps::clumps::{clump_grain, Garcia, Library, LibraryParams};
 use grainpipe_clumps::garcia::{garcia, GarciaOptions};
 use grainpipe_clumps::grains::{
-    series_to_grains, FromHarmonics, HarmonicsParams, Synthetic, SyntheticParams,
+    collection_to_grains, FromHarmonics, HarmonicsParams, Synthetic, SyntheticParams,
 };
 use grainpipe_core::stage::{RunContext, SilentReporter};
 use grainpipe_core::units::Q;
@@ -46,8 +46,12 @@ fn main() {
             voxel_size: Q::new(voxel),
             ..HarmonicsParams::default()
         };
-        let out = FromHarmonics.run(&p, &Inputs::new(), &ctx).unwrap();
-        let grains = series_to_grains(out["grains"].as_series().unwrap()).unwrap();
+        let files = FromHarmonics
+            .preflight(&p, &Default::default())
+            .unwrap()
+            .plan;
+        let out = FromHarmonics.run(&p, &files, &Inputs::new(), &ctx).unwrap();
+        let grains = collection_to_grains(out["grains"].as_collection().unwrap()).unwrap();
         let mut times = Vec::new();
         let mut spheres = Vec::new();
         let mut voxels = Vec::new();
@@ -138,15 +142,17 @@ fn main() {
         count,
         ..SyntheticParams::default()
     };
-    let g = Synthetic.run(&sp, &Inputs::new(), &ctx).unwrap();
+    let g = Synthetic.run(&sp, &(), &Inputs::new(), &ctx).unwrap();
     let t1 = Instant::now();
     let mut inp = Inputs::new();
     inp.insert("grains".into(), Arc::new(g["grains"].clone()));
-    let c = Garcia.run(&Default::default(), &inp, &ctx).unwrap();
+    let c = Garcia.run(&Default::default(), &(), &inp, &ctx).unwrap();
     let t2 = Instant::now();
     let mut inp2 = Inputs::new();
     inp2.insert("library".into(), Arc::new(c["library"].clone()));
-    let l = Library.run(&LibraryParams::default(), &inp2, &ctx).unwrap();
+    let l = Library
+        .run(&LibraryParams::default(), &(), &inp2, &ctx)
+        .unwrap();
     let t3 = Instant::now();
     let cpu = cpu_seconds() - c0;
     let lib = c["library"].as_clump_library().unwrap();

@@ -4,13 +4,12 @@
 use crate::garcia::{
     clump_metrics, garcia, is_connected, ClumpMetrics, GarciaOptions, GarciaResult,
 };
-use crate::grains::{series_to_grains, GrainMask};
+use crate::grains::{collection_to_grains, GrainMask};
 use grainpipe_core::fsutil::atomic_write;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::*;
 use nalgebra::{Matrix3, SymmetricEigen};
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// Principal moments (ascending) and axes (rows) of a symmetric tensor.
@@ -89,53 +88,57 @@ pub fn clump_grain(g: &GrainMask, opts: &GarciaOptions, sub: usize) -> Result<Gr
 // ---------------------------------------------------------------------------------------
 // clumps.garcia
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[params]
 pub struct GarciaParams {
+    /// target covered fraction of each grain's voxels (paper: 0.9)
+    // Paper, section 2.1 (as Schneider et al. 2018).
+    #[param(ty = "number in (0, 1]", default = 0.9)]
     pub alpha: f64,
+    /// restrict candidate centres to the medial surface (centres of maximal balls)
+    #[param(default = true)]
     pub medial_surface: bool,
+    /// lazy max-heap of potential coverage; false re-evaluates every candidate each step (same spheres, slower)
+    #[param(default = true)]
     pub lazy_heap: bool,
+    /// fail a grain that needs more spheres
+    #[param(default = 5000)]
     pub max_spheres: usize,
+    /// sub-samples per voxel edge for the clump's volume and inertia
+    #[param(ty = "integer >= 1", default = 2)]
     pub quadrature: usize,
-}
-
-impl Default for GarciaParams {
-    fn default() -> Self {
-        GarciaParams {
-            alpha: 0.9, // paper, section 2.1 (as Schneider et al. 2018)
-            medial_surface: true,
-            lazy_heap: true,
-            max_spheres: 5000,
-            quadrature: 2,
-        }
-    }
 }
 
 pub struct Garcia;
 
 impl TypedStage for Garcia {
     type Params = GarciaParams;
+    type Plan = ();
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "clumps.garcia",
-            version: "1.0.0",
-            doc: "Each grain mask becomes a connected cluster of overlapping spheres covering \
-                  a fraction alpha of its voxels: Garcia's greedy set cover (Donval et al. \
-                  2025, Algorithm 1) with an exact Euclidean distance transform, candidate \
-                  centres on the medial surface and a lazy max-heap of potential coverage.",
-            params: vec![
-                ParamSpec { name: "alpha", ty: "number in (0, 1]", unit: "", doc: "target covered fraction of each grain's voxels (paper: 0.9)" },
-                ParamSpec { name: "medial_surface", ty: "bool", unit: "", doc: "restrict candidate centres to the medial surface (centres of maximal balls)" },
-                ParamSpec { name: "lazy_heap", ty: "bool", unit: "", doc: "lazy max-heap of potential coverage; false re-evaluates every candidate each step (same spheres, slower)" },
-                ParamSpec { name: "max_spheres", ty: "integer", unit: "", doc: "fail a grain that needs more spheres" },
-                ParamSpec { name: "quadrature", ty: "integer >= 1", unit: "", doc: "sub-samples per voxel edge for the clump's volume and inertia" },
-            ],
-            inputs: vec![PortSpec::new("grains", ArtifactKind::Series, "grain masks (a grains.* output)")],
-            outputs: vec![
-                PortSpec::new("library", ArtifactKind::ClumpLibrary, "one clump per grain, in grain order"),
-                PortSpec::new("report", ArtifactKind::Table, "per grain: spheres, candidates, coverage, volume and inertia error vs the mask, connectivity"),
-            ],
-        }
+        StageInfo::new(
+            "clumps.garcia",
+            "1.0.0",
+            "Each grain mask becomes a connected cluster of overlapping spheres covering \
+             a fraction alpha of its voxels: Garcia's greedy set cover (Donval et al. \
+             2025, Algorithm 1) with an exact Euclidean distance transform, candidate \
+             centres on the medial surface and a lazy max-heap of potential coverage.",
+        )
+        .inputs(vec![PortSpec::new(
+            "grains",
+            ArtifactKind::Collection,
+            "grain masks (a grains.* output)",
+        )])
+        .outputs(vec![
+            PortSpec::new(
+                "library",
+                ArtifactKind::ClumpLibrary,
+                "one clump per grain, in grain order",
+            ),
+            PortSpec::new(
+                "report",
+                ArtifactKind::Table,
+                "per grain: spheres, candidates, coverage, volume and inertia error vs the mask, connectivity",
+            ),
+        ])
     }
     fn preflight(&self, p: &Self::Params, inputs: &InputMetas) -> Result<Preflight, StageError> {
         if !(p.alpha > 0.0 && p.alpha <= 1.0) {
@@ -150,21 +153,28 @@ impl TypedStage for Garcia {
         if !(1..=8).contains(&p.quadrature) {
             return Err(StageError::param("quadrature", "must be in 1..=8"));
         }
-        let n = inputs.get("grains").map(|m| m.count_estimate).unwrap_or(0);
-        let mut pf = Preflight::from_info(&self.info(), 64 << 20);
-        if let Some(m) = pf.outputs.get_mut("library") {
-            m.count_estimate = n;
-        }
-        Ok(pf)
+        // One clump (and one report row) per grain, or a failure.
+        let grains = inputs.get("grains");
+        let n = grains.map(|m| m.count_estimate).unwrap_or(0);
+        let bounds = grains.and_then(|m| m.count_bounds);
+        let mut library = ArtifactMeta::of(ArtifactKind::ClumpLibrary).with_count(n, bounds);
+        library.length_scale = grains.and_then(|m| m.length_scale);
+        Ok(Preflight::from_info(&self.info(), 64 << 20)
+            .announce("library", library)
+            .announce(
+                "report",
+                ArtifactMeta::of(ArtifactKind::Table).with_count(n, bounds),
+            ))
     }
     fn run(
         &self,
         p: &Self::Params,
+        _: &(),
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let s = input(inputs, "grains", Artifact::as_series)?;
-        let grains = series_to_grains(s).map_err(|e| StageError::input("grains", e))?;
+        let s = input(inputs, "grains", Artifact::as_collection)?;
+        let grains = collection_to_grains(s).map_err(|e| StageError::input("grains", e))?;
         let opts = GarciaOptions {
             alpha: p.alpha,
             medial: p.medial_surface,
@@ -245,25 +255,21 @@ pub fn report_table(out: &[GrainClump]) -> Table {
 // ---------------------------------------------------------------------------------------
 // clumps.library
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[params]
 pub struct LibraryParams {
+    /// clumps to draw (paper: 200); 0 = keep all
+    // Paper, section 2.1: a reduced library of 200 particles chosen by Sobol sampling.
+    #[param(default = 200)]
     pub count: usize,
+    /// scrambled Sobol (paper), i.i.d. uniform, or all clumps in order
+    #[param(ty = "one of: sobol, random, all", default = "sobol".into())]
     pub sampling: String,
+    /// length factor applied to every clump (paper: 19/14 = 1.357 for GS19)
+    #[param(ty = "number > 0", default = 1.0)]
     pub scale: f64,
+    /// drop clumps whose bounding-sphere diameter (after `scale`) exceeds this before drawing; 0 = no limit (paper, section 3.5: fixed to the layer thickness, 280 um)
+    #[param(default = Q::new(0.0))]
     pub max_bounding_diameter: Q<Length>,
-}
-
-impl Default for LibraryParams {
-    fn default() -> Self {
-        LibraryParams {
-            // Paper, section 2.1: a reduced library of 200 particles chosen by Sobol sampling.
-            count: 200,
-            sampling: "sobol".into(),
-            scale: 1.0,
-            max_bounding_diameter: Q::new(0.0),
-        }
-    }
 }
 
 /// Indices of `count` clumps drawn by bounding-sphere diameter `d`: scrambled Sobol points
@@ -353,65 +359,40 @@ pub struct Library;
 
 impl TypedStage for Library {
     type Params = LibraryParams;
+    type Plan = ();
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "clumps.library",
-            version: "1.1.0",
-            doc: "A reduced clump library: N clumps drawn by scrambled Sobol sampling of the \
-                  bounding-sphere diameter (paper, Remark 2), optionally rescaled (the paper \
-                  rescales GS14 clumps by 19/14 for GS19 sand); per-clump table and a gallery \
-                  packing for .vtp viewing.",
-            params: vec![
-                ParamSpec {
-                    name: "count",
-                    ty: "integer",
-                    unit: "",
-                    doc: "clumps to draw (paper: 200); 0 = keep all",
-                },
-                ParamSpec {
-                    name: "sampling",
-                    ty: "one of: sobol, random, all",
-                    unit: "",
-                    doc: "scrambled Sobol (paper), i.i.d. uniform, or all clumps in order",
-                },
-                ParamSpec {
-                    name: "scale",
-                    ty: "number > 0",
-                    unit: "",
-                    doc: "length factor applied to every clump (paper: 19/14 = 1.357 for GS19)",
-                },
-                ParamSpec {
-                    name: "max_bounding_diameter",
-                    ty: "length",
-                    unit: "m",
-                    doc: "drop clumps whose bounding-sphere diameter (after `scale`) exceeds this before drawing; 0 = no limit (paper, section 3.5: fixed to the layer thickness, 280 um)",
-                },
-            ],
-            inputs: vec![PortSpec::new(
+        StageInfo::new(
+            "clumps.library",
+            "1.1.0",
+            "A reduced clump library: N clumps drawn by scrambled Sobol sampling of the \
+             bounding-sphere diameter (paper, Remark 2), optionally rescaled (the paper \
+             rescales GS14 clumps by 19/14 for GS19 sand); per-clump table and a gallery \
+             packing for .vtp viewing.",
+        )
+        .inputs(vec![PortSpec::new(
+            "library",
+            ArtifactKind::ClumpLibrary,
+            "the full library (clumps.garcia)",
+        )])
+        .outputs(vec![
+            PortSpec::new(
                 "library",
                 ArtifactKind::ClumpLibrary,
-                "the full library (clumps.garcia)",
-            )],
-            outputs: vec![
-                PortSpec::new(
-                    "library",
-                    ArtifactKind::ClumpLibrary,
-                    "the reduced, rescaled library (.h5, or .json with format: clump_json)",
-                ),
-                PortSpec::new(
-                    "table",
-                    ArtifactKind::Table,
-                    "per clump: spheres, volume, d_eq, bounding radius, principal inertia",
-                ),
-                PortSpec::new(
-                    "gallery",
-                    ArtifactKind::Packing,
-                    "the clumps on a square grid (export as .vtp)",
-                ),
-            ],
-        }
+                "the reduced, rescaled library (.h5, or .json with format: clump_json)",
+            ),
+            PortSpec::new(
+                "table",
+                ArtifactKind::Table,
+                "per clump: spheres, volume, d_eq, bounding radius, principal inertia",
+            ),
+            PortSpec::new(
+                "gallery",
+                ArtifactKind::Packing,
+                "the clumps on a square grid (export as .vtp)",
+            ),
+        ])
     }
-    fn preflight(&self, p: &Self::Params, _: &InputMetas) -> Result<Preflight, StageError> {
+    fn preflight(&self, p: &Self::Params, inputs: &InputMetas) -> Result<Preflight, StageError> {
         if !["sobol", "random", "all"].contains(&p.sampling.as_str()) {
             return Err(StageError::param(
                 "sampling",
@@ -434,11 +415,46 @@ impl TypedStage for Library {
         if p.count > u32::MAX as usize {
             return Err(StageError::param("count", "too large"));
         }
-        Ok(Preflight::from_info(&self.info(), 16 << 20))
+        // Drawing gives exactly `count` clumps; keeping all gives every input clump, or (with
+        // a diameter limit) between one and all of them.
+        let full = inputs.get("library");
+        let n_in = full.map(|m| m.count_estimate).unwrap_or(0);
+        let (n, bounds) = if p.sampling != "all" && p.count > 0 {
+            (p.count as u64, Some([p.count as u64; 2]))
+        } else {
+            let b = full.and_then(|m| m.count_bounds);
+            (
+                n_in,
+                if dmax == 0.0 {
+                    b
+                } else {
+                    b.map(|[_, hi]| [1, hi])
+                },
+            )
+        };
+        let length = full.and_then(|m| m.length_scale).map(|l| l * p.scale);
+        let with_length = |mut m: ArtifactMeta| {
+            m.length_scale = length;
+            m
+        };
+        // The gallery's box depends on the clump sizes; its axes are never periodic.
+        let mut gallery = ArtifactMeta::of(ArtifactKind::Packing).with_count(n, bounds);
+        gallery.periodic = Some([false; 3]);
+        Ok(Preflight::from_info(&self.info(), 16 << 20)
+            .announce(
+                "library",
+                with_length(ArtifactMeta::of(ArtifactKind::ClumpLibrary).with_count(n, bounds)),
+            )
+            .announce(
+                "table",
+                ArtifactMeta::of(ArtifactKind::Table).with_count(n, bounds),
+            )
+            .announce("gallery", with_length(gallery)))
     }
     fn run(
         &self,
         p: &Self::Params,
+        _: &(),
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {

@@ -4,7 +4,7 @@
 //!
 //! Stages:
 //! - `grains.from_labels`, `grains.from_meshes`, `grains.from_harmonics`, `grains.synthetic`:
-//!   grain masks as a Series of PhaseImage frames plus size/shape statistics;
+//!   grain masks as a Collection of PhaseImage items plus size/shape statistics;
 //! - `clumps.garcia`: Algorithm 1 with the paper's three accelerations;
 //! - `clumps.library`: Sobol subsampling by bounding-sphere diameter, rescaling, export.
 //!

@@ -1,6 +1,6 @@
 //! Closed triangle meshes (STL ASCII/binary, OBJ) and their voxelization by ray parity.
 
-use crate::shape::Voxelized;
+use crate::shape::{VoxelizeError, Voxelized};
 use std::collections::HashMap;
 use std::path::Path;
 
@@ -214,7 +214,7 @@ impl Mesh {
     /// crosses the surface an odd number of times (ray parity, exact for closed surfaces).
     /// Each (y, z) row gathers its crossings from the triangles over it, so the cost is
     /// O(rows under each triangle + voxels). One empty layer is left around.
-    pub fn voxelize(&self, h: f64) -> Result<Voxelized, String> {
+    pub fn voxelize(&self, h: f64) -> Result<Voxelized, VoxelizeError> {
         let mut lo = [f64::INFINITY; 3];
         let mut hi = [f64::NEG_INFINITY; 3];
         for v in &self.vertices {
@@ -227,10 +227,7 @@ impl Mesh {
         let dims = [0, 1, 2].map(|a| (((hi[a] - start[a]) / h).ceil() as usize) + 1);
         let n = dims[0] * dims[1] * dims[2];
         if n > 400_000_000 {
-            return Err(format!(
-                "the mesh needs {} x {} x {} voxels: use a larger voxel_size",
-                dims[0], dims[1], dims[2]
-            ));
+            return Err(VoxelizeError::TooManyVoxels { what: "mesh", dims });
         }
         // A tiny irrational shift of the ray keeps it off vertices and edges that sit
         // exactly on voxel-centre rows (a parity count is only exact off them).
@@ -290,10 +287,7 @@ impl Mesh {
             }
         }
         if odd_rows > 0 {
-            return Err(format!(
-                "{odd_rows} voxel rows cross the surface an odd number of times: the mesh \
-                 is not closed"
-            ));
+            return Err(VoxelizeError::OpenSurface(odd_rows));
         }
         Ok((dims, start, mask))
     }

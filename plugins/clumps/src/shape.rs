@@ -9,6 +9,21 @@ use std::path::Path;
 /// A voxelization: dims, lower grid corner [same unit as the shape], mask (x fastest).
 pub type Voxelized = ([usize; 3], [f64; 3], Vec<bool>);
 
+/// Why a shape or a mesh could not be voxelized.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum VoxelizeError {
+    #[error("the shape transform is singular")]
+    SingularTransform,
+    #[error("the {what} needs {} x {} x {} voxels: use a larger voxel_size", dims[0], dims[1], dims[2])]
+    TooManyVoxels {
+        /// "grain" or "mesh".
+        what: &'static str,
+        dims: [usize; 3],
+    },
+    #[error("{0} voxel rows cross the surface an odd number of times: the mesh is not closed")]
+    OpenSurface(usize),
+}
+
 /// Orthonormal associated Legendre functions without the Condon-Shortley phase,
 /// `Q_n^m(x) = sqrt((2n+1)/(4 pi) (n-m)!/(n+m)!) P_n^m(x)`, for 0 <= m <= n <= nmax, stored
 /// at `n * (n + 1) / 2 + m`. Standard three-term recursion in n (stable for n ~ 100).
@@ -237,20 +252,20 @@ impl StarShape {
 
     /// Voxel mask at voxel size `h` (voxel centres inside the solid), with one empty voxel
     /// layer around. Returns (dims, origin of the lower grid corner, mask).
-    pub fn voxelize(&self, h: f64) -> Result<Voxelized, String> {
+    pub fn voxelize(&self, h: f64) -> Result<Voxelized, VoxelizeError> {
         let inv = self
             .transform
             .try_inverse()
-            .ok_or("the shape transform is singular")?;
+            .ok_or(VoxelizeError::SingularTransform)?;
         let (lo, hi) = self.bbox();
         let start = lo.map(|v| ((v / h).floor() - 1.0) * h);
         let dims = [0, 1, 2].map(|a| (((hi[a] - start[a]) / h).ceil() as usize) + 1);
         let n = dims[0] * dims[1] * dims[2];
         if n > 400_000_000 {
-            return Err(format!(
-                "the grain needs {} x {} x {} voxels: use a larger voxel_size",
-                dims[0], dims[1], dims[2]
-            ));
+            return Err(VoxelizeError::TooManyVoxels {
+                what: "grain",
+                dims,
+            });
         }
         let mut mask = vec![false; n];
         // Points nearer than the smallest tabulated radius are inside and points beyond the
@@ -281,20 +296,6 @@ impl StarShape {
         }
         Ok((dims, start, mask))
     }
-}
-
-/// A uniformly random rotation matrix (normalised Gaussian quaternion).
-pub fn random_rotation<R: rand::Rng + ?Sized>(rng: &mut R) -> Matrix3<f64> {
-    use rand_distr::{Distribution, StandardNormal};
-    let q: [f64; 4] = [0; 4].map(|_| StandardNormal.sample(rng));
-    let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-    let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-        q[0] / n,
-        q[1] / n,
-        q[2] / n,
-        q[3] / n,
-    ));
-    *q.to_rotation_matrix().matrix()
 }
 
 /// A Gaussian random field on the sphere with angular power spectrum `C_n = K n^-beta` for

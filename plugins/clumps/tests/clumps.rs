@@ -340,12 +340,12 @@ fn synthetic_clumps(
         ..SyntheticParams::default()
     };
     let g = grainpipe_clumps::grains::Synthetic
-        .run(&p, &Inputs::new(), ctx)
+        .run(&p, &(), &Inputs::new(), ctx)
         .unwrap();
     let mut inp = Inputs::new();
     inp.insert("grains".into(), std::sync::Arc::new(g["grains"].clone()));
     let c = grainpipe_clumps::clumps::Garcia
-        .run(&Default::default(), &inp, ctx)
+        .run(&Default::default(), &(), &inp, ctx)
         .unwrap();
     let mut out = Inputs::new();
     out.insert("library".into(), std::sync::Arc::new(c["library"].clone()));
@@ -370,6 +370,7 @@ fn same_seed_same_clumps_under_one_and_two_threads() {
                         count: 4,
                         ..Default::default()
                     },
+                    &(),
                     &inp2,
                     &ctx,
                 )
@@ -410,7 +411,7 @@ fn library_cap_on_bounding_diameter_keeps_exactly_the_clumps_below_it() {
         ..Default::default()
     };
     let l = grainpipe_clumps::clumps::Library
-        .run(&params(cap), &inp2, &ctx)
+        .run(&params(cap), &(), &inp2, &ctx)
         .unwrap();
     let Artifact::ClumpLibrary(lib) = l["library"].clone() else {
         panic!()
@@ -422,7 +423,7 @@ fn library_cap_on_bounding_diameter_keeps_exactly_the_clumps_below_it() {
         .all(|c| 2.0 * c.bounding_radius <= 2.0 * cap));
     // Below the smallest clump nothing is left: a parameter error, not an empty library.
     assert!(matches!(
-        grainpipe_clumps::clumps::Library.run(&params(0.5 * d[0]), &inp2, &ctx),
+        grainpipe_clumps::clumps::Library.run(&params(0.5 * d[0]), &(), &inp2, &ctx),
         Err(StageError::InvalidParam { .. })
     ));
 }

@@ -2,10 +2,8 @@
 //! formats crate: every real grain of data/sand-grains becomes a connected clump at
 //! alpha = 0.9, and the exports are written.
 
-use grainpipe_core::engine::run_quietly;
-use grainpipe_core::pipeline::PipelineDoc;
+use grainpipe_core::testing::{run_pipeline, workspace_root};
 use grainpipe_core::{ColumnData, Registry};
-use std::path::Path;
 
 fn registry() -> Registry {
     let mut r = Registry::new();
@@ -21,11 +19,9 @@ fn registry_is_consistent() {
 
 #[test]
 fn real_grains_become_connected_clumps_at_alpha_0_9() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let mut doc = PipelineDoc::load(&root.join("pipelines/clumps.yaml")).unwrap();
+    let root = workspace_root(env!("CARGO_MANIFEST_DIR"));
     let out = tempfile::tempdir().unwrap();
-    doc.redirect_exports(out.path());
-    let res = run_quietly(&doc, &registry()).unwrap();
+    let res = run_pipeline(&registry(), &root, "clumps.yaml", &[], out.path()).unwrap();
     let report = res.outputs["clumps"]["report"].as_table().unwrap().clone();
     let cov = report.f64_column("coverage").unwrap();
     let ColumnData::I64(spheres) = &report.column("spheres").unwrap().data else {
@@ -80,7 +76,7 @@ fn preflight_refuses_impossible_parameters_and_missing_inputs() {
         reg.stage(id).unwrap().stage.preflight(&params, inputs)
     };
     let mut series = InputMetas::new();
-    series.insert("grains".into(), ArtifactMeta::of(ArtifactKind::Series));
+    series.insert("grains".into(), ArtifactMeta::of(ArtifactKind::Collection));
     assert!(pf("clumps.garcia", serde_json::json!({}), &series).is_ok());
     for (id, params, key) in [
         ("clumps.garcia", serde_json::json!({"alpha": 1.5}), "alpha"),
@@ -146,18 +142,28 @@ fn from_labels_takes_a_field_for_more_than_255_grains() {
         },
         name: "labels".into(),
         unit: "".into(),
+        convention: grainpipe_core::ComponentConvention::Plain,
         components: 1,
         data: FieldData::F64(v),
     };
+    let mut metas = grainpipe_core::InputMetas::new();
+    metas.insert(
+        "field".into(),
+        grainpipe_core::ArtifactMeta::on_grid(
+            grainpipe_core::ArtifactKind::Field,
+            field.grid.clone(),
+        ),
+    );
     let mut inp = Inputs::new();
     inp.insert("field".into(), std::sync::Arc::new(Artifact::Field(field)));
     let reg = registry();
-    let out = reg
-        .stage("grains.from_labels")
-        .unwrap()
-        .stage
+    let st = &reg.stage("grains.from_labels").unwrap().stage;
+    let params = serde_json::json!({});
+    let (_, prepared) = st.preflight(&params, &metas).unwrap();
+    let out = st
         .run(
-            &serde_json::json!({}),
+            &params,
+            &prepared,
             &inp,
             &RunContext::new(1, &SilentReporter),
         )
@@ -198,10 +204,11 @@ fn from_meshes_stage_scales_by_mesh_unit() {
     let reg = registry();
     let st = &reg.stage("grains.from_meshes").unwrap().stage;
     let params = serde_json::json!({"files": [path.to_str().unwrap()], "voxel_size": "50 um", "mesh_unit": "1 mm"});
-    st.preflight(&params, &Default::default()).unwrap();
+    let (_, prepared) = st.preflight(&params, &Default::default()).unwrap();
     let out = st
         .run(
             &params,
+            &prepared,
             &Inputs::new(),
             &RunContext::new(1, &SilentReporter),
         )
@@ -232,9 +239,11 @@ fn from_harmonics_maps_sizes_onto_the_requested_law() {
         "files": files, "count": 6, "random_rotation": true, "voxel_size": "4 um",
         "size": {"kind": "uniform", "min": "100 um", "max": "160 um"}
     });
+    let (_, prepared) = st.preflight(&params, &Default::default()).unwrap();
     let out = st
         .run(
             &params,
+            &prepared,
             &Inputs::new(),
             &RunContext::new(3, &SilentReporter),
         )
@@ -253,4 +262,87 @@ fn from_harmonics_maps_sizes_onto_the_requested_law() {
             expect[k]
         );
     }
+}
+
+#[test]
+fn preflight_announces_counts_the_parameters_fix() {
+    use grainpipe_core::model::ArtifactMeta;
+    use grainpipe_core::stage::InputMetas;
+    use grainpipe_core::ArtifactKind;
+    let reg = registry();
+    let pf = |id: &str, params: serde_json::Value, inputs: &InputMetas| {
+        reg.stage(id)
+            .unwrap()
+            .stage
+            .preflight(&params, inputs)
+            .unwrap()
+            .0
+    };
+    let g = pf(
+        "grains.synthetic",
+        serde_json::json!({"count": 7, "voxel_size": "40 um"}),
+        &InputMetas::new(),
+    );
+    assert_eq!(g.outputs["grains"].count_bounds, Some([7, 7]));
+    assert_eq!(g.outputs["stats"].count_bounds, Some([7, 7]));
+    assert_eq!(g.outputs["summary"].count_bounds, Some([4, 4]));
+    // The default lognormal law's mean diameter: 140 um x exp(0.25^2 / 2).
+    let d = g.outputs["grains"].length_scale.unwrap();
+    assert!(
+        (d / (140e-6 * (0.03125f64).exp()) - 1.0).abs() < 1e-12,
+        "{d}"
+    );
+    // clumps.garcia: one clump and one report row per grain.
+    let mut series = InputMetas::new();
+    series.insert("grains".into(), g.outputs["grains"].clone());
+    let c = pf("clumps.garcia", serde_json::json!({}), &series);
+    assert_eq!(c.outputs["library"].count_bounds, Some([7, 7]));
+    assert_eq!(c.outputs["report"].count_bounds, Some([7, 7]));
+    // clumps.library: `count` clumps drawn, or all of them kept.
+    let mut lib = InputMetas::new();
+    lib.insert("library".into(), c.outputs["library"].clone());
+    let l = pf("clumps.library", serde_json::json!({"count": 3}), &lib);
+    for port in ["library", "table", "gallery"] {
+        assert_eq!(l.outputs[port].count_bounds, Some([3, 3]), "{port}");
+    }
+    assert_eq!(l.outputs["gallery"].periodic, Some([false; 3]));
+    let all = pf(
+        "clumps.library",
+        serde_json::json!({"sampling": "all"}),
+        &lib,
+    );
+    assert_eq!(all.outputs["library"].count_bounds, Some([7, 7]));
+    let capped = pf(
+        "clumps.library",
+        serde_json::json!({"sampling": "all", "max_bounding_diameter": "1 mm"}),
+        &lib,
+    );
+    assert_eq!(capped.outputs["library"].count_bounds, Some([1, 7]));
+    // grains.from_labels: the count is known only once the labels are read.
+    let mut labels = InputMetas::new();
+    labels.insert("labels".into(), ArtifactMeta::of(ArtifactKind::PhaseImage));
+    let f = pf("grains.from_labels", serde_json::json!({}), &labels);
+    assert_eq!(f.outputs["grains"].count_bounds, None);
+    assert_eq!(f.outputs["summary"].count_bounds, Some([4, 4]));
+}
+
+/// The shipped data directory is found from any working directory, and the value the cache
+/// hashes is the directory actually read.
+#[test]
+fn harmonics_directory_resolves_to_the_shipped_data() {
+    let reg = registry();
+    let st = &reg.stage("grains.from_harmonics").unwrap().stage;
+    let v = st
+        .normalize_params(&serde_json::json!({"directory": "data/sand-grains/MA107-6-fine"}))
+        .unwrap();
+    let dir = std::path::PathBuf::from(v["directory"].as_str().unwrap());
+    assert!(dir.is_dir(), "{}", dir.display());
+    assert_eq!(v["directory"], st.default_params()["directory"]);
+    let spec = st
+        .info()
+        .params
+        .iter()
+        .find(|p| p.name == "directory")
+        .unwrap();
+    assert!(spec.reads_file);
 }

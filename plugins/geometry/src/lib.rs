@@ -1,7 +1,6 @@
 //! Basic geometry stages: `packing.rsa` (random sequential addition of spheres) and
 //! `voxelize.packing` (spheres and clumps to a phase image).
 
-pub mod cells;
 pub mod rsa;
 pub mod voxelize;
 

@@ -2,49 +2,52 @@
 
 use grainpipe_core::distributions::SizeDistribution;
 use grainpipe_core::units::{Length, Q};
+use grainpipe_core::spatial::CellList;
 use grainpipe_core::{
-    ArtifactKind, ArtifactMeta, Body, Domain, InputMetas, Inputs, Outputs, Packing, ParamSpec,
-    PortSpec, Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
+    params, ArtifactKind, ArtifactMeta, Body, BodyShape, Domain, InputMetas, Inputs, Outputs,
+    Packing, PortSpec, Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
 };
 use rand::RngExt;
-use serde::{Deserialize, Serialize};
 use std::f64::consts::PI;
-
-use crate::cells::CellList;
 
 /// Jamming limit of monodisperse RSA in 3-D (Torquato, Uche & Stillinger 2006: 0.38278).
 pub const RSA_JAMMING_LIMIT: f64 = 0.38278;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[params]
 pub struct RsaParams {
     /// Box edge lengths.
+    #[param(default = [Q::new(500e-6); 3])]
     pub size: [Q<Length>; 3],
-    /// Sphere radius distribution.
+    /// Sphere radius law, e.g. {kind: fixed, value: 25 um}.
+    #[param(default = SizeDistribution::Fixed { value: Q::new(25e-6) })]
     pub radius: SizeDistribution,
-    /// Target solid volume fraction.
+    /// Target solid volume fraction, in (0, 1); monodisperse RSA jams at 0.383.
+    #[param(default = 0.30)]
     pub volume_fraction: f64,
-    /// Periodic axes; non-periodic axes keep spheres entirely inside the box.
+    /// Periodic axes; other axes keep spheres entirely inside the box.
+    #[param(default = [true; 3])]
     pub periodic: [bool; 3],
-    /// Random positions tried for one sphere before giving up.
+    /// Random positions tried for one sphere before the stage fails.
+    #[param(default = 200_000)]
     pub max_attempts_per_sphere: u64,
 }
 
-impl Default for RsaParams {
-    fn default() -> Self {
-        RsaParams {
-            size: [Q::new(500e-6); 3],
-            radius: SizeDistribution::Fixed {
-                value: Q::new(25e-6),
-            },
-            volume_fraction: 0.30,
-            periodic: [true; 3],
-            max_attempts_per_sphere: 200_000,
-        }
-    }
-}
-
 pub struct Rsa;
+
+/// Whether a sphere (c, r) overlaps any sphere of `packing` stored in `cells`, whose cells are
+/// at least one largest diameter wide (so the 27 adjacent cells hold every candidate).
+fn overlaps(cells: &CellList, c: [f64; 3], r: f64, packing: &Packing) -> bool {
+    !cells.visit_adjacent(c, |id| {
+        let b = &packing.bodies[id as usize];
+        let rb = match b.shape {
+            BodyShape::Sphere { radius } => radius,
+            BodyShape::Clump { .. } => unreachable!("RSA places spheres only"),
+        };
+        let d = cells.separation(c, b.position);
+        let d2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+        d2 >= (r + rb) * (r + rb)
+    })
+}
 
 /// Radii drawn for a target volume: draws until the summed volume reaches `target_volume`.
 fn draw_radii(p: &RsaParams, ctx_rng: &mut impl rand::Rng, target_volume: f64) -> Vec<f64> {
@@ -72,61 +75,29 @@ fn mean_sphere_volume(d: &SizeDistribution) -> f64 {
 
 impl TypedStage for Rsa {
     type Params = RsaParams;
+    type Plan = ();
 
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "packing.rsa",
-            version: "1.0.0",
-            doc: "Random sequential addition of non-overlapping spheres. Radii are drawn from the \
-                  distribution until their summed volume reaches the target fraction of the box, \
-                  sorted largest first, then each sphere is placed at uniformly random positions \
-                  until one does not overlap any placed sphere (cell-list test, periodic images on \
-                  periodic axes). RSA saturates: monodisperse spheres jam at a volume fraction of \
-                  0.383 (Torquato et al. 2006), so higher targets are refused before running and a \
-                  sphere that finds no place within max_attempts_per_sphere stops the stage with \
-                  the fraction reached.",
-            params: vec![
-                ParamSpec {
-                    name: "size",
-                    ty: "[x, y, z] lengths",
-                    unit: "m",
-                    doc: "box edge lengths",
-                },
-                ParamSpec {
-                    name: "radius",
-                    ty: "size distribution",
-                    unit: "m",
-                    doc: "sphere radius law, e.g. {kind: fixed, value: 25 um}",
-                },
-                ParamSpec {
-                    name: "volume_fraction",
-                    ty: "number in (0, 0.6)",
-                    unit: "",
-                    doc: "target solid volume fraction",
-                },
-                ParamSpec {
-                    name: "periodic",
-                    ty: "[bool, bool, bool]",
-                    unit: "",
-                    doc: "periodic axes; other axes keep spheres inside the box",
-                },
-                ParamSpec {
-                    name: "max_attempts_per_sphere",
-                    ty: "integer",
-                    unit: "",
-                    doc: "random positions tried for one sphere before the stage fails",
-                },
-            ],
-            inputs: vec![],
-            outputs: vec![
-                PortSpec::new("packing", ArtifactKind::Packing, "the spheres"),
-                PortSpec::new(
-                    "report",
-                    ArtifactKind::Table,
-                    "target and achieved volume fraction, spheres, attempts",
-                ),
-            ],
-        }
+        StageInfo::new(
+            "packing.rsa",
+            "1.0.0",
+            "Random sequential addition of non-overlapping spheres. Radii are drawn from the \
+             distribution until their summed volume reaches the target fraction of the box, \
+             sorted largest first, then each sphere is placed at uniformly random positions \
+             until one does not overlap any placed sphere (cell-list test, periodic images on \
+             periodic axes). RSA saturates: monodisperse spheres jam at a volume fraction of \
+             0.383 (Torquato et al. 2006), so higher targets are refused before running and a \
+             sphere that finds no place within max_attempts_per_sphere stops the stage with \
+             the fraction reached.",
+        )
+        .outputs(vec![
+            PortSpec::new("packing", ArtifactKind::Packing, "the spheres"),
+            PortSpec::new(
+                "report",
+                ArtifactKind::Table,
+                "target and achieved volume fraction, spheres, attempts",
+            ),
+        ])
     }
 
     fn preflight(&self, p: &RsaParams, _inputs: &InputMetas) -> Result<Preflight, StageError> {
@@ -185,18 +156,19 @@ impl TypedStage for Rsa {
                 "about {count:.0} spheres: more than the 50 million this stage handles; shrink the box"
             )));
         }
-        let mut meta = ArtifactMeta::of(ArtifactKind::Packing);
-        meta.count_estimate = count as u64;
-        meta.domain_box = Some(([0.0; 3], size));
-        meta.length_scale = Some(2.0 * p.radius.mean());
-        let mut pf = Preflight::from_info(&self.info(), (count as u64) * 200);
-        pf.outputs.insert("packing".into(), meta);
-        Ok(pf)
+        let packing = ArtifactMeta::packing([0.0; 3], size, p.periodic)
+            .with_count(count as u64, None)
+            .with_length_scale(2.0 * p.radius.mean());
+        let report = ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1]));
+        Ok(Preflight::from_info(&self.info(), (count as u64) * 200)
+            .announce("packing", packing)
+            .announce("report", report))
     }
 
     fn run(
         &self,
         p: &RsaParams,
+        _plan: &(),
         _inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
@@ -207,7 +179,7 @@ impl TypedStage for Rsa {
         // Largest first: small spheres still fit into the gaps left by large ones.
         radii.sort_by(|a, b| b.total_cmp(a));
         let rmax = radii[0];
-        let mut cells = CellList::new(size, p.periodic, 2.0 * rmax);
+        let mut cells = CellList::new([0.0; 3], size, p.periodic, 2.0 * rmax);
         let mut packing = Packing::new(Domain::boxed([0.0; 3], size, p.periodic));
         let mut attempts_total = 0u64;
         let mut placed_volume = 0.0;
@@ -223,8 +195,8 @@ impl TypedStage for Rsa {
                         r + rng.random::<f64>() * (size[a] - 2.0 * r)
                     }
                 });
-                if !cells.overlaps(c, r, &packing) {
-                    cells.insert(c, packing.bodies.len());
+                if !overlaps(&cells, c, r, &packing) {
+                    cells.insert(packing.bodies.len() as u32, c);
                     packing.bodies.push(Body::sphere(c, r));
                     placed_volume += 4.0 / 3.0 * PI * r.powi(3);
                     placed = true;

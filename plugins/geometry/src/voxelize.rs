@@ -1,38 +1,29 @@
 //! `voxelize.packing`: spheres and clumps -> a phase image, with sub-voxel supersampling.
 
 use grainpipe_core::units::{Length, Q};
+use grainpipe_core::spatial::CellList;
 use grainpipe_core::{
-    input, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, Packing,
-    ParamSpec, Phase, PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table,
+    input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs,
+    Packing, Phase, PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table,
     TypedStage, WorldSphere,
 };
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
 
-use crate::cells::CellList;
-
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[params]
 pub struct VoxelizeParams {
-    /// Voxel edge; 0 = derive from `voxels_per_diameter`.
+    /// Voxel edge (adjusted so voxels tile the box); 0 = use voxels_per_diameter. Give it to
+    /// have the grid known before running (downstream memory estimates need it).
+    #[param(default = Q::new(0.0))]
     pub voxel_size: Q<Length>,
-    /// Voxels across the mean body diameter, used when `voxel_size` is 0.
+    /// Voxels across the mean volume-equivalent body diameter when voxel_size is 0.
+    #[param(default = 10.0)]
     pub voxels_per_diameter: f64,
     /// Sub-samples per axis in voxels cut by a surface.
+    #[param(default = 4, ty = "integer 1..16")]
     pub supersampling: u32,
     /// Name of the solid phase (label 1).
+    #[param(default = "grain".into())]
     pub phase_name: String,
-}
-
-impl Default for VoxelizeParams {
-    fn default() -> Self {
-        VoxelizeParams {
-            voxel_size: Q::new(0.0),
-            voxels_per_diameter: 10.0,
-            supersampling: 4,
-            phase_name: "grain".into(),
-        }
-    }
 }
 
 pub struct Voxelize;
@@ -74,30 +65,33 @@ fn mean_diameter(packing: &Packing) -> f64 {
 
 impl TypedStage for Voxelize {
     type Params = VoxelizeParams;
+    type Plan = ();
 
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "voxelize.packing",
-            version: "1.0.0",
-            doc: "Voxelizes a packing of spheres or clumps into a two-phase image (0 = pore, 1 = \
-                  solid). A voxel entirely inside a sphere is solid, one entirely outside every \
-                  sphere is pore, and a voxel cut by a surface is sampled at supersampling^3 points \
-                  against the union of the spheres that reach it and is solid when at least half \
-                  of its points are. Periodic axes wrap. The report compares the image's solid \
-                  fraction and the sub-voxel coverage with the analytic volume fraction of the \
-                  packing.",
-            params: vec![
-                ParamSpec { name: "voxel_size", ty: "length", unit: "m", doc: "voxel edge (adjusted so voxels tile the box); 0 = use voxels_per_diameter" },
-                ParamSpec { name: "voxels_per_diameter", ty: "number", unit: "", doc: "voxels across the mean volume-equivalent body diameter when voxel_size is 0" },
-                ParamSpec { name: "supersampling", ty: "integer 1..16", unit: "", doc: "sub-samples per axis in voxels cut by a surface" },
-                ParamSpec { name: "phase_name", ty: "string", unit: "", doc: "name of the solid phase (label 1)" },
-            ],
-            inputs: vec![PortSpec::new("packing", ArtifactKind::Packing, "spheres or clumps to voxelize")],
-            outputs: vec![
-                PortSpec::new("image", ArtifactKind::PhaseImage, "0 = pore, 1 = solid"),
-                PortSpec::new("report", ArtifactKind::Table, "analytic, image and coverage volume fractions"),
-            ],
-        }
+        StageInfo::new(
+            "voxelize.packing",
+            "1.0.0",
+            "Voxelizes a packing of spheres or clumps into a two-phase image (0 = pore, 1 = \
+             solid). A voxel entirely inside a sphere is solid, one entirely outside every \
+             sphere is pore, and a voxel cut by a surface is sampled at supersampling^3 points \
+             against the union of the spheres that reach it and is solid when at least half \
+             of its points are. Periodic axes wrap. The report compares the image's solid \
+             fraction and the sub-voxel coverage with the analytic volume fraction of the \
+             packing.",
+        )
+        .inputs(vec![PortSpec::new(
+            "packing",
+            ArtifactKind::Packing,
+            "spheres or clumps to voxelize",
+        )])
+        .outputs(vec![
+            PortSpec::new("image", ArtifactKind::PhaseImage, "0 = pore, 1 = solid"),
+            PortSpec::new(
+                "report",
+                ArtifactKind::Table,
+                "analytic, image and coverage volume fractions",
+            ),
+        ])
     }
 
     fn preflight(&self, p: &VoxelizeParams, inputs: &InputMetas) -> Result<Preflight, StageError> {
@@ -137,18 +131,33 @@ impl TypedStage for Voxelize {
                         format!("{n:.3e} voxels: more than {MAX_VOXELS:.0e}; use a larger voxel"),
                     ));
                 }
-                out.grid = Some(grid_for(lo, hi, [false; 3], v));
                 memory = n as u64;
+                // The grid is exact only for an explicit voxel size (the run measures the
+                // mean diameter, which the packing's announced length scale only estimates)
+                // and known periodicity.
+                match meta.and_then(|m| m.periodic) {
+                    Some(periodic) if p.voxel_size.si() > 0.0 => {
+                        out = ArtifactMeta::on_grid(
+                            ArtifactKind::PhaseImage,
+                            grid_for(lo, hi, periodic, v),
+                        );
+                    }
+                    _ => out.count_estimate = n as u64,
+                }
             }
         }
-        let mut pf = Preflight::from_info(&self.info(), memory);
-        pf.outputs.insert("image".into(), out);
-        Ok(pf)
+        Ok(Preflight::from_info(&self.info(), memory)
+            .announce("image", out)
+            .announce(
+                "report",
+                ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
+            ))
     }
 
     fn run(
         &self,
         p: &VoxelizeParams,
+        _plan: &(),
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
@@ -218,9 +227,9 @@ pub fn voxelize(
     let size = grid.extent();
     let origin = grid.origin;
     let local = |c: [f64; 3]| [0, 1, 2].map(|a| (c[a] - origin[a]).rem_euclid(size[a]));
-    let mut cells = CellList::new(size, periodic, rmax + half_diag);
+    let mut cells = CellList::new([0.0; 3], size, periodic, rmax + half_diag);
     for (i, s) in spheres.iter().enumerate() {
-        cells.insert(local(s.center), i);
+        cells.insert(i as u32, local(s.center));
     }
     let [nx, ny, nz] = grid.dims;
     let s = supersampling;
@@ -238,18 +247,19 @@ pub fn voxelize(
                     let c = local(grid.voxel_center(x, y, z));
                     candidates.clear();
                     let mut full = false;
-                    cells.for_neighbours(c, |id| {
+                    cells.visit_adjacent(c, |id| {
+                        let id = id as usize;
                         let sp = &spheres[id];
                         let d = cells.separation(c, local(sp.center));
                         let dist = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
                         if dist + half_diag <= sp.radius {
                             full = true;
-                            return true;
+                            return false;
                         }
                         if dist - half_diag < sp.radius {
                             candidates.push(id);
                         }
-                        false
+                        true
                     });
                     let f = if full {
                         1.0

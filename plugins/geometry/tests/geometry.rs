@@ -11,7 +11,7 @@ use std::sync::Arc;
 
 fn run_rsa(p: &RsaParams, seed: u64) -> Result<Packing, StageError> {
     let ctx = RunContext::new(seed, &SilentReporter);
-    let out = Rsa.run(p, &Inputs::new(), &ctx)?;
+    let out = Rsa.run(p, &(), &Inputs::new(), &ctx)?;
     Ok(out["packing"].as_packing().unwrap().clone())
 }
 
@@ -22,7 +22,7 @@ fn voxelize(packing: &Packing, p: &VoxelizeParams) -> (grainpipe_core::PhaseImag
         "packing".into(),
         Arc::new(Artifact::Packing(packing.clone())),
     );
-    let out = Voxelize.run(p, &inputs, &ctx).unwrap();
+    let out = Voxelize.run(p, &(), &inputs, &ctx).unwrap();
     let cov = out["report"]
         .as_table()
         .unwrap()

@@ -15,7 +15,10 @@
 //! first seed.
 
 use grainpipe_core::stage::SilentReporter;
-use grainpipe_core::{Artifact, ClumpLibrary, Inputs, RunContext, TypedStage};
+use grainpipe_core::{
+    Artifact, ArtifactKind, ArtifactMeta, ClumpLibrary, InputMetas, Inputs, RunContext,
+    TypedStage,
+};
 use grainpipe_mcm::stages::{Stacked, StackedParams};
 use serde_json::json;
 use std::sync::Arc;
@@ -105,14 +108,23 @@ fn main() {
             }))
             .unwrap();
             let mut inputs = Inputs::new();
+            let mut metas = InputMetas::new();
             if let Some(l) = &lib {
                 inputs.insert(
                     "library".into(),
                     Arc::new(Artifact::ClumpLibrary(l.clone())),
                 );
+                metas.insert("library".into(), ArtifactMeta::of(ArtifactKind::ClumpLibrary));
             }
             let t0 = Instant::now();
-            let r = Stacked.run(&p, &inputs, &RunContext::new(seed, &SilentReporter));
+            let r = Stacked.preflight(&p, &metas).and_then(|pf| {
+                Stacked.run(
+                    &p,
+                    &pf.plan,
+                    &inputs,
+                    &RunContext::new(seed, &SilentReporter),
+                )
+            });
             let dt = t0.elapsed().as_secs_f64();
             match r {
                 Ok(out) => {

@@ -4,6 +4,8 @@
 //! Verlet lists built from a periodic cell list over bounding spheres (Remark 3), periodic
 //! images in x, y, z (Remark 4), a minimum gap (Remark 5) and the soft layer box (Remark 4).
 
+use grainpipe_core::spatial::{min_image, CellList};
+use grainpipe_core::ParamChoice;
 use nalgebra::{UnitQuaternion, Vector3};
 use rayon::prelude::*;
 
@@ -11,7 +13,7 @@ type V3 = Vector3<f64>;
 
 /// Which overlap energy is minimised. Both vanish exactly on non-overlapping packings
 /// (eq. 2.5), so they have the same solutions; they differ in how easily one is reached.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize, ParamChoice)]
 #[serde(rename_all = "snake_case")]
 pub enum EnergyKind {
     /// 1/2 sum over all overlapping sphere pairs of their overlap squared: continuously
@@ -23,7 +25,7 @@ pub enum EnergyKind {
 }
 
 /// How the energy is minimised.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize, ParamChoice)]
 #[serde(rename_all = "snake_case")]
 pub enum Minimiser {
     /// FIRE (Bitzek et al. 2006), default.
@@ -235,17 +237,23 @@ impl System {
         let bmax = (0..n).map(|i| self.bound(i)).fold(0.0, f64::max);
         let cut = 2.0 * bmax + self.gap + self.skin;
         let l = self.cell;
-        let nc: [usize; 3] = [0, 1, 2].map(|a| ((l[a] / cut).floor() as usize).clamp(1, 64));
-        let cs: [f64; 3] = [0, 1, 2].map(|a| l[a] / nc[a] as f64);
+        let mut cells = CellList::new([0.0; 3], l, [true; 3], cut);
+        // Cell edges as the cell list computes them: a wrapped position within rounding of
+        // the period lands in cell 0, where its images are reported from `w - l`.
+        let dims = cells.dims();
+        let edge: [f64; 3] = [0, 1, 2].map(|a| l[a] / dims[a] as f64);
         let mut wrapped = Vec::with_capacity(n);
-        let mut cells: Vec<Vec<usize>> = vec![Vec::new(); nc[0] * nc[1] * nc[2]];
         for (i, g) in self.grains.iter().enumerate() {
             let w: [f64; 3] = [0, 1, 2].map(|a| g.pos[a].rem_euclid(l[a]));
-            let c: [usize; 3] = [0, 1, 2].map(|a| ((w[a] / cs[a]) as usize).min(nc[a] - 1));
-            cells[(c[2] * nc[1] + c[1]) * nc[0] + c[0]].push(i);
-            wrapped.push((V3::from(w), c));
+            cells.insert(i as u32, w);
+            wrapped.push(V3::from([0, 1, 2].map(|a| {
+                if (w[a] / edge[a]).floor() as usize >= dims[a] {
+                    w[a] - l[a]
+                } else {
+                    w[a]
+                }
+            })));
         }
-        let reach: [i64; 3] = [0, 1, 2].map(|a| (cut / cs[a]).ceil() as i64);
         let world = self.world();
         let grains = &self.grains;
         let shapes = &self.shapes;
@@ -258,74 +266,63 @@ impl System {
                 if grains[i].frozen {
                     return (nbs, pairs);
                 }
-                let (wi, ci) = wrapped[i];
+                let wi = wrapped[i];
                 let si = &shapes[grains[i].shape];
-                for dz in -reach[2]..=reach[2] {
-                    for dy in -reach[1]..=reach[1] {
-                        for dx in -reach[0]..=reach[0] {
-                            let d = [dx, dy, dz];
-                            let mut idx = [0usize; 3];
-                            let mut img = V3::zeros();
-                            for a in 0..3 {
-                                let c = ci[a] as i64 + d[a];
-                                let k = c.div_euclid(nc[a] as i64);
-                                idx[a] = c.rem_euclid(nc[a] as i64) as usize;
-                                img[a] = k as f64 * l[a];
-                            }
-                            for &j in &cells[(idx[2] * nc[1] + idx[1]) * nc[0] + idx[0]] {
-                                if j == i && img == V3::zeros() {
-                                    continue;
-                                }
-                                // Two mobile grains: listed once, on the lower index.
-                                if j < i && !grains[j].frozen {
-                                    continue;
-                                }
-                                let (wj, _) = wrapped[j];
-                                let sj = &shapes[grains[j].shape];
-                                let sep = wi - (wj + img);
-                                if sep.norm() >= si.bound + sj.bound + reach_gap {
-                                    continue;
-                                }
-                                // shift such that pos_i - (pos_j + shift) = sep
-                                let shift = img + (wj - grains[j].pos) - (wi - grains[i].pos);
-                                let pi = grains[i].pos;
-                                let cj = grains[j].pos + shift;
-                                // Remark 3: only spheres inside the other's bounding sphere.
-                                let near_j: Vec<u32> = (0..sj.radii.len())
-                                    .filter(|&b| {
-                                        (cj + world[j][b] - pi).norm()
-                                            < sj.radii[b] + si.bound + reach_gap
-                                    })
-                                    .map(|b| b as u32)
-                                    .collect();
-                                let first = pairs.len() as u32;
-                                for a in 0..si.radii.len() {
-                                    let pa = pi + world[i][a];
-                                    if (pa - cj).norm() >= si.radii[a] + sj.bound + reach_gap {
-                                        continue;
-                                    }
-                                    for &b in &near_j {
-                                        let pb = cj + world[j][b as usize];
-                                        if (pa - pb).norm()
-                                            < si.radii[a] + sj.radii[b as usize] + reach_gap
-                                        {
-                                            pairs.push((a as u32, b));
-                                        }
-                                    }
-                                }
-                                let last = pairs.len() as u32;
-                                if last > first {
-                                    nbs.push(Nb {
-                                        j,
-                                        shift,
-                                        first,
-                                        last,
-                                    });
-                                }
+                // Every periodic image within the cut-off, also when the cell is thinner
+                // than a grain.
+                cells.visit(wi.into(), cut, |j, img| {
+                    let (j, img) = (j as usize, V3::from(img));
+                    if j == i && img == V3::zeros() {
+                        return true;
+                    }
+                    // Two mobile grains: listed once, on the lower index.
+                    if j < i && !grains[j].frozen {
+                        return true;
+                    }
+                    let wj = wrapped[j];
+                    let sj = &shapes[grains[j].shape];
+                    let sep = wi - (wj + img);
+                    if sep.norm() >= si.bound + sj.bound + reach_gap {
+                        return true;
+                    }
+                    // shift such that pos_i - (pos_j + shift) = sep
+                    let shift = img + (wj - grains[j].pos) - (wi - grains[i].pos);
+                    let pi = grains[i].pos;
+                    let cj = grains[j].pos + shift;
+                    // Remark 3: only spheres inside the other's bounding sphere.
+                    let near_j: Vec<u32> = (0..sj.radii.len())
+                        .filter(|&b| {
+                            (cj + world[j][b] - pi).norm()
+                                < sj.radii[b] + si.bound + reach_gap
+                        })
+                        .map(|b| b as u32)
+                        .collect();
+                    let first = pairs.len() as u32;
+                    for a in 0..si.radii.len() {
+                        let pa = pi + world[i][a];
+                        if (pa - cj).norm() >= si.radii[a] + sj.bound + reach_gap {
+                            continue;
+                        }
+                        for &b in &near_j {
+                            let pb = cj + world[j][b as usize];
+                            if (pa - pb).norm()
+                                < si.radii[a] + sj.radii[b as usize] + reach_gap
+                            {
+                                pairs.push((a as u32, b));
                             }
                         }
                     }
-                }
+                    let last = pairs.len() as u32;
+                    if last > first {
+                        nbs.push(Nb {
+                            j,
+                            shift,
+                            first,
+                            last,
+                        });
+                    }
+                    true
+                });
                 (nbs, pairs)
             })
             .collect();
@@ -614,10 +611,7 @@ impl System {
             }
             let gj = &self.grains[j];
             let sj = &self.shapes[gj.shape];
-            let mut d = gi.pos - gj.pos;
-            for a in 0..3 {
-                d[a] -= self.cell[a] * (d[a] / self.cell[a]).round();
-            }
+            let d = V3::from([0, 1, 2].map(|a| min_image(gi.pos[a] - gj.pos[a], self.cell[a], true)));
             let mut wj: Option<Vec<V3>> = None;
             for k in 0..27 {
                 let img = V3::new(

@@ -5,11 +5,36 @@
 use crate::engine::{Grain, Minimised, Shape, System, Worst};
 use grainpipe_core::distributions::SizeDistribution;
 use grainpipe_core::ClumpLibrary;
-use nalgebra::{UnitQuaternion, Vector3};
+use grainpipe_core::spatial::{min_image, random_quaternion};
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
-use rand_distr::{Distribution, StandardNormal};
 use std::f64::consts::PI;
+
+/// Sobol points are kept this far inside (0, 1) before the radius quantile is taken.
+const U_EDGE: f64 = 1e-12;
+
+/// Volume of a sphere of radius `r`.
+pub fn sphere_volume(r: f64) -> f64 {
+    4.0 / 3.0 * PI * r.powi(3)
+}
+
+/// The smallest and the largest volume of a sphere drawn from `d` by [`Source::pick`].
+pub fn sphere_volume_range(d: &SizeDistribution) -> (f64, f64) {
+    (
+        sphere_volume(d.quantile(U_EDGE)),
+        sphere_volume(d.quantile(1.0 - U_EDGE)),
+    )
+}
+
+/// Mean volume of a sphere drawn from `d`, from 1024 quantiles (an estimate for preflight).
+pub fn mean_sphere_volume(d: &SizeDistribution) -> f64 {
+    let n = 1024;
+    (0..n)
+        .map(|i| sphere_volume(d.quantile((i as f64 + 0.5) / n as f64)))
+        .sum::<f64>()
+        / n as f64
+}
 
 /// Where the grains come from.
 pub enum Source<'a> {
@@ -33,11 +58,11 @@ impl Source<'_> {
         let u = sobol_burley::sample(k, 0, seed) as f64;
         match self {
             Source::Spheres(d) => {
-                let r = d.quantile(u.clamp(1e-12, 1.0 - 1e-12));
+                let r = d.quantile(u.clamp(U_EDGE, 1.0 - U_EDGE));
                 Pick {
                     index: None,
                     radius: r,
-                    volume: 4.0 / 3.0 * PI * r.powi(3),
+                    volume: sphere_volume(r),
                 }
             }
             Source::Library(lib) => {
@@ -83,12 +108,6 @@ impl Source<'_> {
     }
 }
 
-/// Uniformly distributed random rotation (normalised 4-D Gaussian).
-pub fn random_rotation(rng: &mut ChaCha8Rng) -> UnitQuaternion<f64> {
-    let q: [f64; 4] = [0; 4].map(|_| StandardNormal.sample(rng));
-    UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]))
-}
-
 /// Random initial positions tried per grain before the least overlapping one is kept.
 pub const PLACE_ATTEMPTS: usize = 200;
 
@@ -117,7 +136,7 @@ fn place_among(
     let mut best = (f64::INFINITY, sys.grains[i].pos, sys.grains[i].rot);
     for _ in 0..attempts {
         sys.grains[i].pos = draw(rng);
-        sys.grains[i].rot = random_rotation(rng);
+        sys.grains[i].rot = quat(random_quaternion(rng));
         let o = sys.max_overlap(i, others.clone());
         if o < best.0 {
             best = (o, sys.grains[i].pos, sys.grains[i].rot);
@@ -277,10 +296,7 @@ fn shake(sys: &mut System, rng: &mut ChaCha8Rng, amp: f64, around: Option<usize>
             continue;
         }
         if let Some(c) = centre {
-            let mut d = sys.grains[i].pos - c;
-            for a in 0..3 {
-                d[a] -= cell[a] * (d[a] / cell[a]).round();
-            }
+            let d = Vector3::from([0, 1, 2].map(|a| min_image(sys.grains[i].pos[a] - c[a], cell[a], true)));
             if d.norm() > SHAKE_REACH * bmax {
                 continue;
             }
@@ -324,11 +340,39 @@ fn random_in_ball(rng: &mut ChaCha8Rng) -> Vector3<f64> {
 }
 
 /// Why a contraction run ended without reaching scale 1.
+#[derive(Debug)]
+pub enum FailReason {
+    /// The overlaps of the initial placement could not be removed.
+    InitialOverlap,
+    /// `max_iterations` reached at contraction scale `scale`.
+    IterationLimit { limit: usize, scale: f64 },
+    /// The rate was halved below `rate_min` at contraction scale `scale`.
+    Jammed { rate_min: f64, scale: f64 },
+    /// The user interrupted the run (the error to pass on as is).
+    Cancelled(grainpipe_core::StageError),
+}
+
+impl std::fmt::Display for FailReason {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            FailReason::InitialOverlap => write!(f, "initial overlap removal did not converge"),
+            FailReason::IterationLimit { limit, scale } => write!(
+                f,
+                "iteration limit {limit} reached at contraction scale {scale:.5} (target 1)"
+            ),
+            FailReason::Jammed { rate_min, scale } => write!(
+                f,
+                "contraction rate fell below {rate_min:e} at scale {scale:.5}: the packing is jammed"
+            ),
+            FailReason::Cancelled(_) => write!(f, "cancelled"),
+        }
+    }
+}
+
+/// A contraction run that ended without reaching scale 1, with what it reached.
 pub struct RunFailure {
     pub stats: RunStats,
-    pub reason: String,
-    /// Set when the run was cancelled (the error to pass on as is).
-    pub cancelled: Option<grainpipe_core::StageError>,
+    pub reason: FailReason,
 }
 
 /// Alternates contraction and overlap removal from scale `beta` down to 1 (Algorithm 2,
@@ -350,18 +394,10 @@ pub fn contract(
     mut progress: impl FnMut(f64) -> Result<(), grainpipe_core::StageError>,
 ) -> Result<RunStats, Box<RunFailure>> {
     let mut st = RunStats::default();
-    let fail = |stats: RunStats, reason: String| {
-        Box::new(RunFailure {
-            stats,
-            reason,
-            cancelled: None,
-        })
-    };
-    let limit = |s: f64| {
-        format!(
-            "iteration limit {} reached at contraction scale {s:.5} (target 1)",
-            sch.max_iterations
-        )
+    let fail = |stats: RunStats, reason: FailReason| Box::new(RunFailure { stats, reason });
+    let limit = |scale: f64| FailReason::IterationLimit {
+        limit: sch.max_iterations,
+        scale,
     };
     let mut s = beta;
     apply(sys, mode, s, s);
@@ -377,16 +413,12 @@ pub fn contract(
         },
     );
     if !m.converged {
-        return Err(fail(st, "initial overlap removal did not converge".into()));
+        return Err(fail(st, FailReason::InitialOverlap));
     }
     let mut rate = sch.rate0;
     while s > 1.0 {
         if let Err(e) = progress((beta - s) / (beta - 1.0).max(1e-12)) {
-            return Err(Box::new(RunFailure {
-                stats: st,
-                reason: "cancelled".into(),
-                cancelled: Some(e),
-            }));
+            return Err(fail(st, FailReason::Cancelled(e)));
         }
         let budget = |st: &RunStats| {
             sch.step_iterations
@@ -421,10 +453,10 @@ pub fn contract(
         if rate < sch.rate_min {
             return Err(fail(
                 st,
-                format!(
-                    "contraction rate fell below {:e} at scale {s:.5}: the packing is jammed",
-                    sch.rate_min
-                ),
+                FailReason::Jammed {
+                    rate_min: sch.rate_min,
+                    scale: s,
+                },
             ));
         }
         if !sch.shake {
@@ -467,4 +499,10 @@ pub fn stacked_cell_z(top: f64, thickness: f64, periodic_z: bool) -> f64 {
 
 pub fn v3(a: [f64; 3]) -> Vector3<f64> {
     Vector3::from(a)
+}
+
+/// The rotation of a unit quaternion (w, x, y, z), e.g. from
+/// [`grainpipe_core::spatial::random_quaternion`] (already normalised).
+pub fn quat([w, x, y, z]: [f64; 4]) -> UnitQuaternion<f64> {
+    UnitQuaternion::new_unchecked(Quaternion::new(w, x, y, z))
 }

@@ -2,18 +2,19 @@
 
 use crate::engine::{EnergyKind, Grain, Minimiser, Relaxation, Shape, System};
 use crate::pack::{
-    contract, place, random_rotation, uniform, v3, Mode, Pick, RunFailure, RunStats, Schedule,
-    Source, PLACE_ATTEMPTS,
+    contract, mean_sphere_volume, place, quat, sphere_volume, sphere_volume_range, uniform, v3,
+    FailReason, Mode, Pick, RunFailure, RunStats, Schedule, Source, PLACE_ATTEMPTS,
 };
+use grainpipe_core::spatial::random_quaternion;
 use grainpipe_core::distributions::SizeDistribution;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
-    input, Artifact, ArtifactKind, Body, BodyShape, ClumpLibrary, Domain, InputMetas, Inputs,
-    Outputs, Packing, ParamSpec, PortSpec, Preflight, RunContext, StageError, StageInfo, Table,
-    Tensor, TensorConvention, TypedStage,
+    input, params, Artifact, ArtifactKind, ArtifactMeta, Body, BodyShape, ClumpLibrary, Domain,
+    InputMetas, Inputs, Outputs, Packing, PortSpec, Preflight, RunContext, StageError, StageInfo,
+    Table, Tensor, TensorConvention, TypedStage,
 };
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
+use std::f64::consts::PI;
 use std::time::Instant;
 
 /// `mcm.classic`: Williams and Philipse's MCM for clumps (Schneider et al. 2018).
@@ -21,216 +22,171 @@ pub struct Classic;
 /// `mcm.stacked`: Donval et al.'s stacked MCM (Algorithm 2).
 pub struct Stacked;
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+/// The contraction settings both stages share (their keys sit beside the stage's own).
+#[params]
+pub struct ContractionParams {
+    /// Sphere radius distribution, used when no `library` is connected.
+    #[param(default = SizeDistribution::Fixed { value: Q::new(70e-6) })]
+    pub radius: SizeDistribution,
+    /// Target solid volume fraction eta (per layer for mcm.stacked).
+    // Paper, section 2.2: the sand packings are generated at 50 %.
+    #[param(default = 0.5)]
+    pub volume_fraction: f64,
+    /// Initial schedule: beta is reached in this many equal geometric steps; the rate then
+    /// adapts (x1.25 after success, /2 and retry when stuck).
+    #[param(default = 30)]
+    pub contraction_steps: usize,
+    /// Overlap tolerance relative to the mean bounding radius; the gap is padded by it so the
+    /// final gap is at least min_gap.
+    #[param(default = 1e-2)]
+    pub tolerance: f64,
+    /// Minimiser iterations allowed per contraction step before it is undone, the rate halved
+    /// and the jam shaken loose.
+    #[param(default = 3000)]
+    pub step_iterations: usize,
+    /// Minimiser iteration limit (per layer for mcm.stacked); reaching it fails the stage.
+    // Paper, section 3.5: maximal iteration count 30 000.
+    #[param(default = 30_000)]
+    pub max_iterations: usize,
+    /// Overlap energy minimised: all_pairs (default) sums 1/2 delta^2 over every overlapping
+    /// sphere pair (smooth); max_pair is eq. (2.4)-(2.6) as written, only the deepest sphere
+    /// pair of each grain pair. Both are zero exactly when nothing overlaps.
+    #[param(default = Relaxation::default().energy)]
+    pub energy: EnergyKind,
+    /// fire (default, Bitzek et al. 2006) or the paper's fixed-step gradient descent,
+    /// eq. (2.8).
+    #[param(default = Relaxation::default().minimiser)]
+    pub minimiser: Minimiser,
+    /// A layer (the packing, for mcm.classic) that fails within max_iterations is placed
+    /// afresh and packed again, up to this many times, each try with its own max_iterations
+    /// (paper, section 3.5, counts such tries); the report gives the tries.
+    #[param(default = 2)]
+    pub restarts: usize,
+    /// When a contraction step gets stuck: true (default) re-expands 2 %, shakes the grains
+    /// around the worst overlap and relocates that grain before retrying; false only undoes
+    /// the step and halves the rate (the plain contraction path).
+    #[param(default = true)]
+    pub shake: bool,
+    /// gradient_descent only: h_c and h_R of eq. (2.8) (paper: 0.1, 0.4); rotation steps in
+    /// units of the grain's bounding radius.
+    #[param(default = Relaxation::default().step_sizes)]
+    pub step_sizes: [f64; 2],
+}
+
+#[params]
 pub struct ClassicParams {
-    pub radius: SizeDistribution,
+    #[param(flatten)]
+    pub contraction: ContractionParams,
+    /// Minimum distance between two grains (Remark 5).
+    #[param(default = Q::new(0.0))]
+    pub min_gap: Q<Length>,
+    /// Number of grains N (used when `size` is zero).
+    #[param(default = 200)]
     pub count: usize,
+    /// Final cell size; if non-zero, grains are drawn until eta |Y| is exceeded and rescaled
+    /// to hit it (Remark 1), else the cube holding `count` grains at eta.
+    #[param(default = [Q::new(0.0); 3])]
     pub size: [Q<Length>; 3],
-    pub volume_fraction: f64,
+    /// Linear enlargement of the initial cell (eq. 2.2).
+    #[param(default = 2.0)]
     pub beta: f64,
-    pub contraction_steps: usize,
-    pub min_gap: Q<Length>,
-    pub tolerance: f64,
-    pub step_iterations: usize,
-    pub max_iterations: usize,
-    pub energy: EnergyKind,
-    pub minimiser: Minimiser,
-    pub step_sizes: [f64; 2],
-    pub shake: bool,
-    pub restarts: usize,
 }
 
-impl Default for ClassicParams {
-    fn default() -> Self {
-        ClassicParams {
-            radius: SizeDistribution::Fixed {
-                value: Q::new(70e-6),
-            },
-            count: 200,
-            size: [Q::new(0.0); 3],
-            // Paper, section 2.2: the sand packings are generated at 50 %.
-            volume_fraction: 0.5,
-            beta: 2.0,
-            contraction_steps: 30,
-            min_gap: Q::new(0.0),
-            tolerance: 1e-2,
-            step_iterations: 3000,
-            // Paper, section 3.5: maximal iteration count 30 000.
-            max_iterations: 30_000,
-            energy: Relaxation::default().energy,
-            minimiser: Relaxation::default().minimiser,
-            step_sizes: Relaxation::default().step_sizes,
-            shake: true,
-            restarts: 2,
-        }
-    }
-}
-
-#[derive(Clone, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
+#[params]
 pub struct StackedParams {
-    pub radius: SizeDistribution,
-    pub layers: usize,
-    pub layer_size: [Q<Length>; 2],
-    pub layer_thickness: Q<Length>,
-    pub volume_fraction: f64,
-    pub beta: f64,
-    pub contraction_steps: usize,
+    #[param(flatten)]
+    pub contraction: ContractionParams,
+    /// Minimum distance between two grains (Remark 5).
+    // Paper, section 3.5: two layers of (560 um)^2 x 280 um at 50 %, gap 8 um.
+    #[param(default = Q::new(8e-6))]
     pub min_gap: Q<Length>,
-    pub tolerance: f64,
-    pub step_iterations: usize,
-    pub max_iterations: usize,
-    pub energy: EnergyKind,
-    pub minimiser: Minimiser,
-    pub step_sizes: [f64; 2],
-    pub shake: bool,
-    pub restarts: usize,
+    /// Number of layers N_layers.
+    #[param(default = 2)]
+    pub layers: usize,
+    /// In-plane size Lx, Ly (periodic).
+    #[param(default = [Q::new(560e-6), Q::new(560e-6)])]
+    pub layer_size: [Q<Length>; 2],
+    /// Layer thickness, fixed (Remark 1).
+    #[param(default = Q::new(280e-6))]
+    pub layer_thickness: Q<Length>,
+    /// Enlargement of each new layer along z only.
+    #[param(default = 3.0)]
+    pub beta: f64,
+    /// true (paper, Remark 4): periodic in z too, the layer being packed also meets the image
+    /// of layer 0 above it; false: free surface above each new layer (as when printing),
+    /// packing periodic in x, y only (fewer jams, faster; BENCHMARKS.md#mcm).
+    #[param(default = true)]
     pub periodic_z: bool,
 }
 
-impl Default for StackedParams {
-    fn default() -> Self {
-        StackedParams {
-            radius: SizeDistribution::Fixed {
-                value: Q::new(70e-6),
-            },
-            // Paper, section 3.5: two layers of (560 um)^2 x 280 um at 50 %, gap 8 um.
-            layers: 2,
-            layer_size: [Q::new(560e-6), Q::new(560e-6)],
-            layer_thickness: Q::new(280e-6),
-            volume_fraction: 0.5,
-            beta: 3.0,
-            contraction_steps: 30,
-            min_gap: Q::new(8e-6),
-            tolerance: 1e-2,
-            step_iterations: 3000,
-            max_iterations: 30_000,
-            energy: Relaxation::default().energy,
-            minimiser: Relaxation::default().minimiser,
-            step_sizes: Relaxation::default().step_sizes,
-            shake: true,
-            restarts: 2,
-            periodic_z: true,
+impl ContractionParams {
+    fn relaxation(&self) -> Relaxation {
+        Relaxation {
+            energy: self.energy,
+            minimiser: self.minimiser,
+            step_sizes: self.step_sizes,
         }
     }
-}
 
-/// The parameters both stages share, borrowed from either.
-struct Common<'a> {
-    radius: &'a SizeDistribution,
-    volume_fraction: f64,
-    beta: f64,
-    contraction_steps: usize,
-    min_gap: f64,
-    tolerance: f64,
-    step_iterations: usize,
-    max_iterations: usize,
-    relaxation: Relaxation,
-    shake: bool,
-}
-
-macro_rules! common_of {
-    ($p:expr) => {
-        Common {
-            radius: &$p.radius,
-            volume_fraction: $p.volume_fraction,
-            beta: $p.beta,
-            contraction_steps: $p.contraction_steps,
-            min_gap: $p.min_gap.si(),
-            tolerance: $p.tolerance,
-            step_iterations: $p.step_iterations,
-            max_iterations: $p.max_iterations,
-            relaxation: Relaxation {
-                energy: $p.energy,
-                minimiser: $p.minimiser,
-                step_sizes: $p.step_sizes,
-            },
-            shake: $p.shake,
+    /// Checks the shared settings and the stage's `beta` and `min_gap` [m].
+    fn check(&self, beta: f64, min_gap: f64) -> Result<(), StageError> {
+        let vf = self.volume_fraction;
+        if !(vf > 0.0 && vf < 0.74) {
+            return Err(StageError::param("volume_fraction", format!("must be in (0, 0.74) (denser than close packing of spheres is impossible), got {vf}")));
         }
-    };
-}
+        if !(beta.is_finite() && beta > 1.0) {
+            return Err(StageError::param(
+                "beta",
+                format!("enlargement factor must be > 1 (eq. 2.2), got {beta}"),
+            ));
+        }
+        if self.contraction_steps == 0 {
+            return Err(StageError::param("contraction_steps", "must be at least 1"));
+        }
+        if !(min_gap.is_finite() && min_gap >= 0.0) {
+            return Err(StageError::param(
+                "min_gap",
+                format!("must be >= 0, got {min_gap}"),
+            ));
+        }
+        if !(self.tolerance > 0.0 && self.tolerance < 0.1) {
+            return Err(StageError::param(
+                "tolerance",
+                format!("must be in (0, 0.1), got {}", self.tolerance),
+            ));
+        }
+        if self.step_iterations == 0 || self.max_iterations == 0 {
+            return Err(StageError::param(
+                "max_iterations",
+                "iteration limits must be at least 1",
+            ));
+        }
+        let [h_c, h_r] = self.step_sizes;
+        if !(h_c > 0.0 && h_c <= 1.0 && h_r > 0.0 && h_r <= 1.0) {
+            return Err(StageError::param(
+                "step_sizes",
+                format!(
+                    "h_c and h_R must be in (0, 1] (larger steps overshoot), got [{h_c}, {h_r}]"
+                ),
+            ));
+        }
+        self.radius
+            .validate()
+            .map_err(|(k, m)| StageError::param(&format!("radius.{k}"), m))?;
+        Ok(())
+    }
 
-fn common_params() -> Vec<ParamSpec> {
-    vec![
-        ParamSpec { name: "radius", ty: "SizeDistribution", unit: "m", doc: "sphere radius distribution, used when no `library` is connected" },
-        ParamSpec { name: "volume_fraction", ty: "f64", unit: "1", doc: "target solid volume fraction eta (per layer for mcm.stacked)" },
-        ParamSpec { name: "contraction_steps", ty: "usize", unit: "1", doc: "initial schedule: beta is reached in this many equal geometric steps; the rate then adapts (x1.25 after success, /2 and retry when stuck)" },
-        ParamSpec { name: "min_gap", ty: "Q<Length>", unit: "m", doc: "minimum distance between two grains (Remark 5)" },
-        ParamSpec { name: "tolerance", ty: "f64", unit: "1", doc: "overlap tolerance relative to the mean bounding radius; the gap is padded by it so the final gap is at least min_gap" },
-        ParamSpec { name: "step_iterations", ty: "usize", unit: "1", doc: "minimiser iterations allowed per contraction step before it is undone, the rate halved and the jam shaken loose" },
-        ParamSpec { name: "max_iterations", ty: "usize", unit: "1", doc: "minimiser iteration limit (per layer for mcm.stacked); reaching it fails the stage" },
-        ParamSpec { name: "energy", ty: "all_pairs | max_pair", unit: "", doc: "overlap energy minimised: all_pairs (default) sums 1/2 delta^2 over every overlapping sphere pair (smooth); max_pair is eq. (2.4)-(2.6) as written, only the deepest sphere pair of each grain pair. Both are zero exactly when nothing overlaps" },
-        ParamSpec { name: "minimiser", ty: "fire | gradient_descent", unit: "", doc: "fire (default, Bitzek et al. 2006) or the paper's fixed-step gradient descent, eq. (2.8)" },
-        ParamSpec { name: "restarts", ty: "usize", unit: "1", doc: "a layer (the packing, for mcm.classic) that fails within max_iterations is placed afresh and packed again, up to this many times, each try with its own max_iterations (paper, section 3.5, counts such tries); the report gives the tries" },
-        ParamSpec { name: "shake", ty: "bool", unit: "", doc: "when a contraction step gets stuck: true (default) re-expands 2 %, shakes the grains around the worst overlap and relocates that grain before retrying; false only undoes the step and halves the rate (the plain contraction path)" },
-        ParamSpec { name: "step_sizes", ty: "[f64; 2]", unit: "1", doc: "gradient_descent only: h_c and h_R of eq. (2.8) (paper: 0.1, 0.4); rotation steps in units of the grain's bounding radius" },
-    ]
-}
-
-fn outputs() -> Vec<PortSpec> {
-    vec![
-        PortSpec::new("packing", ArtifactKind::Packing, "periodic packing with layer ids (library embedded for clumps)"),
-        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, tries, iterations, contraction steps, back-offs, shakes, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction"),
-        PortSpec::new("history", ArtifactKind::Table, "convergence history: per layer and overlap-removal phase, the contraction scale, iterations, overlap energy, largest violation and outcome (converged, stuck, shaken, shake_failed)"),
-        PortSpec::new("orientation", ArtifactKind::Tensor, "3x3 orientation tensor <n n> of the grains' long axes (smallest principal moment of inertia); 1/3 I for spheres"),
-    ]
-}
-
-fn check_common(c: &Common) -> Result<(), StageError> {
-    let vf = c.volume_fraction;
-    if !(vf > 0.0 && vf < 0.74) {
-        return Err(StageError::param("volume_fraction", format!("must be in (0, 0.74) (denser than close packing of spheres is impossible), got {vf}")));
-    }
-    if !(c.beta.is_finite() && c.beta > 1.0) {
-        return Err(StageError::param(
-            "beta",
-            format!("enlargement factor must be > 1 (eq. 2.2), got {}", c.beta),
-        ));
-    }
-    if c.contraction_steps == 0 {
-        return Err(StageError::param("contraction_steps", "must be at least 1"));
-    }
-    if !(c.min_gap.is_finite() && c.min_gap >= 0.0) {
-        return Err(StageError::param(
-            "min_gap",
-            format!("must be >= 0, got {}", c.min_gap),
-        ));
-    }
-    if !(c.tolerance > 0.0 && c.tolerance < 0.1) {
-        return Err(StageError::param(
-            "tolerance",
-            format!("must be in (0, 0.1), got {}", c.tolerance),
-        ));
-    }
-    if c.step_iterations == 0 || c.max_iterations == 0 {
-        return Err(StageError::param(
-            "max_iterations",
-            "iteration limits must be at least 1",
-        ));
-    }
-    let [h_c, h_r] = c.relaxation.step_sizes;
-    if !(h_c > 0.0 && h_c <= 1.0 && h_r > 0.0 && h_r <= 1.0) {
-        return Err(StageError::param(
-            "step_sizes",
-            format!("h_c and h_R must be in (0, 1] (larger steps overshoot), got [{h_c}, {h_r}]"),
-        ));
-    }
-    c.radius
-        .validate()
-        .map_err(|(k, m)| StageError::param(&format!("radius.{k}"), m))?;
-    Ok(())
-}
-
-fn schedule(c: &Common) -> Schedule {
-    let rate0 = c.beta.powf(1.0 / c.contraction_steps as f64) - 1.0;
-    Schedule {
-        rate0,
-        rate_min: 1e-5,
-        rate_max: rate0.max(0.01) * 2.0,
-        step_iterations: c.step_iterations,
-        max_iterations: c.max_iterations,
-        shake: c.shake,
+    /// The contraction schedule from `beta` down to 1.
+    fn schedule(&self, beta: f64) -> Schedule {
+        let rate0 = beta.powf(1.0 / self.contraction_steps as f64) - 1.0;
+        Schedule {
+            rate0,
+            rate_min: 1e-5,
+            rate_max: rate0.max(0.01) * 2.0,
+            step_iterations: self.step_iterations,
+            max_iterations: self.max_iterations,
+            shake: self.shake,
+        }
     }
 }
 
@@ -414,7 +370,7 @@ fn contract_with_restarts(
     loop {
         match contract(sys, mode, beta, sch, rng, &mut progress) {
             Ok(st) => return Ok((st, tries)),
-            Err(f) if tries <= restarts && f.cancelled.is_none() => {
+            Err(f) if tries <= restarts && !matches!(f.reason, FailReason::Cancelled(_)) => {
                 ctx.warn(&format!(
                     "{what}: try {tries} failed ({}); placing the grains afresh",
                     f.reason
@@ -429,12 +385,8 @@ fn contract_with_restarts(
 
 /// The stage error for a contraction run that did not reach the final size.
 fn run_failed(stage: &str, layer: usize, layers: usize, tries: usize, f: RunFailure) -> StageError {
-    let RunFailure {
-        stats: st,
-        reason,
-        cancelled,
-    } = f;
-    if let Some(e) = cancelled {
+    let RunFailure { stats: st, reason } = f;
+    if let FailReason::Cancelled(e) = reason {
         return e;
     }
     StageError::failed(format!(
@@ -455,15 +407,19 @@ fn outputs_of(rows: &[Row], packing: Packing, axes: &[[f64; 3]]) -> Outputs {
     out
 }
 
-fn library_input(inputs: &Inputs) -> Result<Option<&ClumpLibrary>, StageError> {
+/// The connected clump library, else spheres from `radius`.
+fn grain_source<'a>(
+    inputs: &'a Inputs,
+    radius: &'a SizeDistribution,
+) -> Result<Source<'a>, StageError> {
     if !inputs.contains_key("library") {
-        return Ok(None);
+        return Ok(Source::Spheres(radius));
     }
     let lib = input(inputs, "library", Artifact::as_clump_library)?;
     if lib.clumps.is_empty() {
         return Err(StageError::input("library", "the clump library is empty"));
     }
-    Ok(Some(lib))
+    Ok(Source::Library(lib))
 }
 
 /// A grain wider than the periodic cell would overlap its own image.
@@ -486,26 +442,131 @@ fn mean_bound(shapes: &[Shape]) -> f64 {
     shapes.iter().map(|s| s.bound).sum::<f64>() / shapes.len().max(1) as f64
 }
 
-impl TypedStage for Classic {
-    type Params = ClassicParams;
-    fn info(&self) -> StageInfo {
-        let mut params = common_params();
-        params.extend([
-            ParamSpec { name: "count", ty: "usize", unit: "1", doc: "number of grains N (used when `size` is zero)" },
-            ParamSpec { name: "size", ty: "[Q<Length>; 3]", unit: "m", doc: "final cell size; if non-zero, grains are drawn until eta |Y| is exceeded and rescaled to hit it (Remark 1), else the cube holding `count` grains at eta" },
-            ParamSpec { name: "beta", ty: "f64", unit: "1", doc: "linear enlargement of the initial cell (eq. 2.2)" },
-        ]);
-        StageInfo {
-            id: "mcm.classic",
-            version: "2.0.0",
-            doc: "Mechanical contraction method: grains placed in a cell enlarged by beta, isotropic contraction steps each followed by overlap removal (FIRE or the paper's gradient descent over centroids and orientations), jams shaken loose, periodic in x, y, z",
-            params,
-            inputs: vec![PortSpec::optional("library", ArtifactKind::ClumpLibrary, "clumps to pack (drawn by scrambled Sobol sampling on bounding diameter); spheres from `radius` if absent")],
-            outputs: outputs(),
+/// Side of the cube holding grains of these volumes at volume fraction `vf`.
+fn cube_side(volumes: impl Iterator<Item = f64>, vf: f64) -> f64 {
+    (volumes.sum::<f64>() / vf).cbrt()
+}
+
+fn library_port(doc: &'static str) -> PortSpec {
+    PortSpec::optional("library", ArtifactKind::ClumpLibrary, doc)
+}
+
+fn outputs() -> Vec<PortSpec> {
+    vec![
+        PortSpec::new("packing", ArtifactKind::Packing, "periodic packing with layer ids (library embedded for clumps)"),
+        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, tries, iterations, contraction steps, back-offs, shakes, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction"),
+        PortSpec::new("history", ArtifactKind::Table, "convergence history: per layer and overlap-removal phase, the contraction scale, iterations, overlap energy, largest violation and outcome (converged, stuck, shaken, shake_failed)"),
+        PortSpec::new("orientation", ArtifactKind::Tensor, "3x3 orientation tensor <n n> of the grains' long axes (smallest principal moment of inertia); 1/3 I for spheres"),
+    ]
+}
+
+/// What preflight knows of the grains before any is drawn: their mean diameter and volume
+/// (estimates) and, for spheres from `radius`, the range of one grain's volume.
+struct GrainSizes {
+    diameter: Option<f64>,
+    volume: Option<f64>,
+    volume_range: Option<(f64, f64)>,
+}
+
+impl GrainSizes {
+    fn of(c: &ContractionParams, inputs: &InputMetas) -> Self {
+        match inputs.get("library") {
+            Some(lib) => GrainSizes {
+                diameter: lib.length_scale,
+                volume: lib.length_scale.map(|d| PI / 6.0 * d.powi(3)),
+                volume_range: None,
+            },
+            None => GrainSizes {
+                diameter: Some(2.0 * c.radius.mean()),
+                volume: Some(mean_sphere_volume(&c.radius)),
+                volume_range: Some(sphere_volume_range(&c.radius)),
+            },
         }
     }
-    fn preflight(&self, p: &Self::Params, _: &InputMetas) -> Result<Preflight, StageError> {
-        check_common(&common_of!(p))?;
+
+    /// Estimated number of grains drawn to fill `target` [m^3] (0 when unknown).
+    fn estimate(&self, target: f64) -> u64 {
+        self.volume
+            .filter(|v| *v > 0.0)
+            .map(|v| (target / v).ceil() as u64)
+            .unwrap_or(0)
+    }
+
+    /// Bounds on the number of grains `sample_volume` draws to exceed `target` [m^3]: at
+    /// least target / vmax, fewer than target / vmin + 1 (with a margin for rounding). Only
+    /// for spheres from `radius`, and only when the range is of a sensible size.
+    fn bounds(&self, target: f64) -> Option<[u64; 2]> {
+        let (vmin, vmax) = self.volume_range?;
+        if !(vmin > 0.0 && vmax.is_finite()) {
+            return None;
+        }
+        let lo = (target / vmax * (1.0 - 1e-6)).floor().max(1.0);
+        let hi = (target / vmin * (1.0 + 1e-6)).ceil() + 1.0;
+        (hi <= 1e9).then(|| [lo as u64, hi as u64])
+    }
+
+    fn with_scale(&self, meta: ArtifactMeta) -> ArtifactMeta {
+        match self.diameter {
+            Some(d) => meta.with_length_scale(d),
+            None => meta,
+        }
+    }
+}
+
+/// The announcement shared by both stages: the packing as given, `layers` report rows, a
+/// history of at least one phase per layer, the 3x3 orientation tensor.
+fn announce<P>(
+    info: &StageInfo,
+    memory: u64,
+    packing: ArtifactMeta,
+    layers: u64,
+    c: &ContractionParams,
+    plan: P,
+) -> Preflight<P> {
+    let table = ArtifactMeta::of(ArtifactKind::Table);
+    Preflight::from_info(info, memory)
+        .announce("packing", packing)
+        .announce(
+            "report",
+            table.clone().with_count(layers, Some([layers, layers])),
+        )
+        .announce(
+            "history",
+            table.with_count(layers * (c.contraction_steps as u64 + 1), None),
+        )
+        .announce(
+            "orientation",
+            ArtifactMeta::of(ArtifactKind::Tensor).with_count(9, Some([9, 9])),
+        )
+        .with_plan(plan)
+}
+
+/// What `mcm.classic`'s preflight settles for its run.
+pub struct ClassicPlan {
+    schedule: Schedule,
+    /// The final cell when `size` gives it; `None`: the cube holding `count` grains at eta.
+    size: Option<[f64; 3]>,
+}
+
+impl TypedStage for Classic {
+    type Params = ClassicParams;
+    type Plan = ClassicPlan;
+    fn info(&self) -> StageInfo {
+        StageInfo::new(
+            "mcm.classic",
+            "2.0.0",
+            "Mechanical contraction method: grains placed in a cell enlarged by beta, isotropic contraction steps each followed by overlap removal (FIRE or the paper's gradient descent over centroids and orientations), jams shaken loose, periodic in x, y, z",
+        )
+        .inputs(vec![library_port("clumps to pack (drawn by scrambled Sobol sampling on bounding diameter); spheres from `radius` if absent")])
+        .outputs(outputs())
+    }
+    fn preflight(
+        &self,
+        p: &ClassicParams,
+        inputs: &InputMetas,
+    ) -> Result<Preflight<ClassicPlan>, StageError> {
+        let c = &p.contraction;
+        c.check(p.beta, p.min_gap.si())?;
         let sized = p.size.iter().all(|l| l.si() > 0.0);
         if !sized && p.size.iter().any(|l| l.si() != 0.0) {
             return Err(StageError::param(
@@ -519,42 +580,69 @@ impl TypedStage for Classic {
                 format!("must be in 1..=200000, got {}", p.count),
             ));
         }
-        Ok(Preflight::from_info(
+        let grains = GrainSizes::of(c, inputs);
+        let size = sized.then(|| p.size.map(|l| l.si()));
+        let mut packing = ArtifactMeta::of(ArtifactKind::Packing);
+        packing.periodic = Some([true; 3]);
+        if let Some(cell) = size {
+            let target = c.volume_fraction * cell.iter().product::<f64>();
+            packing = ArtifactMeta::packing([0.0; 3], cell, [true; 3])
+                .with_count(grains.estimate(target), grains.bounds(target));
+        } else {
+            let n = p.count as u64;
+            packing = packing.with_count(n, Some([n, n]));
+            // Equal spheres: the cube is known before drawing (the run sums the same volumes).
+            if let (SizeDistribution::Fixed { value }, false) =
+                (&c.radius, inputs.contains_key("library"))
+            {
+                let v = sphere_volume(value.si());
+                let side = cube_side((0..p.count).map(|_| v), c.volume_fraction);
+                packing = ArtifactMeta::packing([0.0; 3], [side; 3], [true; 3])
+                    .with_count(n, Some([n, n]));
+            }
+        }
+        let plan = ClassicPlan {
+            schedule: c.schedule(p.beta),
+            size,
+        };
+        Ok(announce(
             &self.info(),
             (p.count as u64 + 1) * 4096,
+            grains.with_scale(packing),
+            1,
+            c,
+            plan,
         ))
     }
     fn run(
         &self,
-        p: &Self::Params,
+        p: &ClassicParams,
+        plan: &ClassicPlan,
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
         let t0 = Instant::now();
-        let lib = library_input(inputs)?;
-        let src = match lib {
-            Some(l) => Source::Library(l),
-            None => Source::Spheres(&p.radius),
-        };
+        let c = &p.contraction;
+        let src = grain_source(inputs, &c.radius)?;
         let order = src.order();
         let seed = grainpipe_core::derive_seed(ctx.seed, b"mcm.sobol") as u32;
-        let sized = p.size.iter().all(|l| l.si() > 0.0);
-        let (picks, scale, cell) = if sized {
-            let cell = p.size.map(|l| l.si());
-            let (pk, s) = sample_volume(
-                &src,
-                p.volume_fraction * cell.iter().product::<f64>(),
-                seed,
-                &order,
-            );
-            (pk, s, cell)
-        } else {
-            let pk: Vec<Pick> = (0..p.count as u32)
-                .map(|k| src.pick(k, seed, &order))
-                .collect();
-            let v: f64 = pk.iter().map(|x| x.volume).sum();
-            let l = (v / p.volume_fraction).cbrt();
-            (pk, 1.0, [l; 3])
+        let (picks, scale, cell) = match plan.size {
+            Some(cell) => {
+                let (pk, s) = sample_volume(
+                    &src,
+                    c.volume_fraction * cell.iter().product::<f64>(),
+                    seed,
+                    &order,
+                );
+                (pk, s, cell)
+            }
+            None => {
+                let pk: Vec<Pick> = (0..p.count as u32)
+                    .map(|k| src.pick(k, seed, &order))
+                    .collect();
+                let l = cube_side(pk.iter().map(|x| x.volume), c.volume_fraction);
+                (pk, 1.0, [l; 3])
+            }
         };
         let mut rng = ctx.rng();
         let shapes: Vec<Shape> = picks.iter().map(|x| src.shape(x, scale)).collect();
@@ -564,12 +652,12 @@ impl TypedStage for Classic {
             cell.iter().cloned().fold(f64::INFINITY, f64::min),
             &shapes,
         )?;
-        let tol = p.tolerance * bmean;
+        let tol = c.tolerance * bmean;
         let grains: Vec<Grain> = (0..picks.len())
             .map(|i| Grain {
                 shape: i,
                 pos: v3([0.0; 3]),
-                rot: random_rotation(&mut rng),
+                rot: quat(random_quaternion(&mut rng)),
                 frozen: false,
                 zbox: None,
             })
@@ -578,9 +666,8 @@ impl TypedStage for Classic {
         let big = cell.map(|l| l * p.beta);
         let mut sys = System::new(shapes, grains, big, p.min_gap.si() + tol, tol);
         sys.margin = tol;
-        sys.relaxation = common_of!(p).relaxation;
+        sys.relaxation = c.relaxation();
         let mode = Mode::Isotropic { final_cell: cell };
-        let sch = schedule(&common_of!(p));
         let place_all = |sys: &mut System, rng: &mut ChaCha8Rng| {
             sys.cell = big;
             for i in 0..sys.grains.len() {
@@ -594,8 +681,8 @@ impl TypedStage for Classic {
             &mut sys,
             &mode,
             p.beta,
-            &sch,
-            p.restarts,
+            &plan.schedule,
+            c.restarts,
             &mut rng,
             ctx,
             "mcm.classic",
@@ -622,51 +709,23 @@ impl TypedStage for Classic {
 
 impl TypedStage for Stacked {
     type Params = StackedParams;
+    type Plan = Schedule;
     fn info(&self) -> StageInfo {
-        let mut params = common_params();
-        params.extend([
-            ParamSpec {
-                name: "layers",
-                ty: "usize",
-                unit: "1",
-                doc: "number of layers N_layers",
-            },
-            ParamSpec {
-                name: "layer_size",
-                ty: "[Q<Length>; 2]",
-                unit: "m",
-                doc: "in-plane size Lx, Ly (periodic)",
-            },
-            ParamSpec {
-                name: "layer_thickness",
-                ty: "Q<Length>",
-                unit: "m",
-                doc: "layer thickness, fixed (Remark 1)",
-            },
-            ParamSpec {
-                name: "beta",
-                ty: "f64",
-                unit: "1",
-                doc: "enlargement of each new layer along z only",
-            },
-            ParamSpec {
-                name: "periodic_z",
-                ty: "bool",
-                unit: "",
-                doc: "true (paper, Remark 4): periodic in z too, the layer being packed also meets the image of layer 0 above it; false: free surface above each new layer (as when printing), packing periodic in x, y only (fewer jams, faster; BENCHMARKS.md#mcm)",
-            },
-        ]);
-        StageInfo {
-            id: "mcm.stacked",
-            version: "2.0.0",
-            doc: "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen, soft box on the centroids, each layer filled to eta exactly, jams shaken loose",
-            params,
-            inputs: vec![PortSpec::optional("library", ArtifactKind::ClumpLibrary, "clumps to pack (scrambled Sobol sampling on bounding diameter, Remark 2); spheres from `radius` if absent")],
-            outputs: outputs(),
-        }
+        StageInfo::new(
+            "mcm.stacked",
+            "2.0.0",
+            "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen, soft box on the centroids, each layer filled to eta exactly, jams shaken loose",
+        )
+        .inputs(vec![library_port("clumps to pack (scrambled Sobol sampling on bounding diameter, Remark 2); spheres from `radius` if absent")])
+        .outputs(outputs())
     }
-    fn preflight(&self, p: &Self::Params, _: &InputMetas) -> Result<Preflight, StageError> {
-        check_common(&common_of!(p))?;
+    fn preflight(
+        &self,
+        p: &StackedParams,
+        inputs: &InputMetas,
+    ) -> Result<Preflight<Schedule>, StageError> {
+        let c = &p.contraction;
+        c.check(p.beta, p.min_gap.si())?;
         if !(1..=1000).contains(&p.layers) {
             return Err(StageError::param(
                 "layers",
@@ -679,22 +738,44 @@ impl TypedStage for Stacked {
         {
             return Err(StageError::param("layer_size", "both lengths must be > 0"));
         }
-        if p.layer_thickness.si().is_nan() || p.layer_thickness.si() <= 0.0 {
+        let t = p.layer_thickness.si();
+        if t.is_nan() || t <= 0.0 {
             return Err(StageError::param("layer_thickness", "must be > 0"));
         }
-        Ok(Preflight::from_info(&self.info(), 64 << 20))
+        let (lx, ly) = (p.layer_size[0].si(), p.layer_size[1].si());
+        let grains = GrainSizes::of(c, inputs);
+        let layers = p.layers as u64;
+        // Remark 1: each layer is filled to eta Lx Ly T.
+        let target = c.volume_fraction * lx * ly * t;
+        let packing = ArtifactMeta::packing(
+            [0.0; 3],
+            [lx, ly, t * p.layers as f64],
+            [true, true, p.periodic_z],
+        )
+        .with_count(
+            layers * grains.estimate(target),
+            grains
+                .bounds(target)
+                .map(|[lo, hi]| [layers * lo, layers * hi]),
+        );
+        Ok(announce(
+            &self.info(),
+            64 << 20,
+            grains.with_scale(packing),
+            layers,
+            c,
+            c.schedule(p.beta),
+        ))
     }
     fn run(
         &self,
-        p: &Self::Params,
+        p: &StackedParams,
+        sch: &Schedule,
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let lib = library_input(inputs)?;
-        let src = match lib {
-            Some(l) => Source::Library(l),
-            None => Source::Spheres(&p.radius),
-        };
+        let c = &p.contraction;
+        let src = grain_source(inputs, &c.radius)?;
         let order = src.order();
         let (lx, ly, t) = (
             p.layer_size[0].si(),
@@ -703,17 +784,16 @@ impl TypedStage for Stacked {
         );
         let mut rng = ctx.rng();
         let mut sys = System::new(Vec::new(), Vec::new(), [lx, ly, t], 0.0, 0.0);
-        sys.relaxation = common_of!(p).relaxation;
+        sys.relaxation = c.relaxation();
         let mut tagged: Vec<(Pick, f64, u32)> = Vec::new();
         let mut rows = Vec::new();
-        let sch = schedule(&common_of!(p));
         for layer in 0..p.layers {
             let t0 = Instant::now();
             let seed =
                 grainpipe_core::derive_seed(ctx.seed, format!("mcm.sobol.{layer}").as_bytes())
                     as u32;
             // Remark 1: sample until eta V_layer is exceeded, rescale to hit it.
-            let target = p.volume_fraction * lx * ly * t;
+            let target = c.volume_fraction * lx * ly * t;
             let (picks, s) = sample_volume(&src, target, seed, &order);
             let z0 = layer as f64 * t;
             let first = sys.grains.len();
@@ -726,7 +806,7 @@ impl TypedStage for Stacked {
                 (b + sys.shapes.iter().map(|x| x.bound).sum::<f64>())
                     / (picks.len() + sys.shapes.len()) as f64
             };
-            let tol = p.tolerance * bmean;
+            let tol = c.tolerance * bmean;
             sys.tol = tol;
             sys.margin = tol;
             sys.gap = p.min_gap.si() + tol;
@@ -744,7 +824,7 @@ impl TypedStage for Stacked {
                 sys.grains.push(Grain {
                     shape: sys.shapes.len() - 1,
                     pos: v3([0.0; 3]),
-                    rot: random_rotation(&mut rng),
+                    rot: quat(random_quaternion(&mut rng)),
                     frozen: false,
                     zbox: None,
                 });
@@ -765,8 +845,8 @@ impl TypedStage for Stacked {
                 &mut sys,
                 &mode,
                 p.beta,
-                &sch,
-                p.restarts,
+                sch,
+                c.restarts,
                 &mut rng,
                 ctx,
                 &format!("mcm.stacked, layer {layer}"),

@@ -4,10 +4,8 @@
 
 mod common;
 
-use grainpipe_core::engine::run_quietly;
-use grainpipe_core::pipeline::PipelineDoc;
+use grainpipe_core::testing::{run_pipeline, workspace_root};
 use grainpipe_core::Registry;
-use std::path::Path;
 
 fn registry() -> Registry {
     let mut r = Registry::new();
@@ -24,16 +22,14 @@ fn registry_is_consistent() {
 
 #[test]
 fn mcm_pipeline_runs_and_exports() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let mut doc = PipelineDoc::load(&root.join("pipelines/mcm.yaml")).unwrap();
+    let root = workspace_root(env!("CARGO_MANIFEST_DIR"));
     let out = tempfile::tempdir().unwrap();
-    doc.redirect_exports(out.path());
-    let res = run_quietly(&doc, &registry()).unwrap();
-    let classic = res.outputs["classic"]["packing"].as_packing().unwrap();
+    let res = run_pipeline(&registry(), &root, "mcm.yaml", &[], out.path()).unwrap();
+    let classic = res.artifact("classic.packing").as_packing().unwrap();
     assert_eq!(classic.bodies.len(), 300);
     // 300 equal spheres in a cube sized for 60 %: exact up to rounding.
     assert!((classic.volume_fraction() - 0.6).abs() < 1e-9);
-    let stacked = res.outputs["stacked"]["packing"].as_packing().unwrap();
+    let stacked = res.artifact("stacked.packing").as_packing().unwrap();
     // Two layers of (560 um)^2 x 280 um at 50 % (Remark 1: exact up to rounding).
     let v = 0.5 * 560e-6 * 560e-6 * 560e-6;
     assert!((stacked.solid_volume() / v - 1.0).abs() < 1e-9);
@@ -61,18 +57,13 @@ fn mcm_pipeline_runs_and_exports() {
         );
     }
     // The convergence history ends with a converged phase at the final size in each layer.
-    let hist = res.outputs["stacked"]["history"].as_table().unwrap();
-    let (
-        Some(grainpipe_core::ColumnData::F64(scale)),
-        Some(grainpipe_core::ColumnData::Str(outcome)),
-    ) = (
-        hist.column("scale").map(|c| &c.data),
-        hist.column("outcome").map(|c| &c.data),
-    )
-    else {
-        panic!("history columns")
-    };
+    let scale = res.column("stacked.history", "scale");
     assert_eq!(scale.last(), Some(&1.0));
+    let hist = res.table("stacked.history");
+    let Some(grainpipe_core::ColumnData::Str(outcome)) = hist.column("outcome").map(|c| &c.data)
+    else {
+        panic!("history column `outcome`")
+    };
     assert_eq!(outcome.last().map(String::as_str), Some("converged"));
     for f in [
         "classic.vtp",

@@ -2,6 +2,21 @@
 
 use crate::params::ScanAxis;
 
+/// Why a CSV path was refused.
+#[derive(Debug, PartialEq, thiserror::Error)]
+pub enum PathError {
+    #[error("the CSV is empty")]
+    Empty,
+    #[error("header `{0}` must name columns x and y")]
+    Header(String),
+    #[error("line {line}: missing column {column}")]
+    MissingColumn { line: usize, column: usize },
+    #[error("line {line}: `{value}` is not a number")]
+    NotANumber { line: usize, value: String },
+    #[error("a path needs at least 2 vertices, found {0}")]
+    TooFewVertices(usize),
+}
+
 /// One straight move of the spot from `a` (at `t0`) to `b` (at `t1`), laser on or off.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Segment {
@@ -136,12 +151,12 @@ impl LaserPath {
 
     /// Reads a polyline CSV: a header line naming `x`, `y` and optionally `on`, then one
     /// vertex per line; coordinates are multiplied by `unit` [m].
-    pub fn from_csv(text: &str, unit: f64, speed: f64) -> Result<LaserPath, String> {
+    pub fn from_csv(text: &str, unit: f64, speed: f64) -> Result<LaserPath, PathError> {
         let mut lines = text
             .lines()
             .enumerate()
             .filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
-        let (_, header) = lines.next().ok_or("the CSV is empty")?;
+        let (_, header) = lines.next().ok_or(PathError::Empty)?;
         let names: Vec<String> = header
             .split(',')
             .map(|s| s.trim().to_ascii_lowercase())
@@ -149,21 +164,25 @@ impl LaserPath {
         let col = |n: &str| names.iter().position(|c| c == n);
         let (ix, iy) = match (col("x"), col("y")) {
             (Some(x), Some(y)) => (x, y),
-            _ => return Err(format!("header `{header}` must name columns x and y")),
+            _ => return Err(PathError::Header(header.to_string())),
         };
         let ion = col("on");
         let mut pts = Vec::new();
         let mut on = Vec::new();
         for (ln, line) in lines {
             let f: Vec<&str> = line.split(',').map(|s| s.trim()).collect();
-            let num = |i: usize| -> Result<f64, String> {
-                let s = f
-                    .get(i)
-                    .ok_or_else(|| format!("line {}: missing column {}", ln + 1, i + 1))?;
+            let num = |i: usize| -> Result<f64, PathError> {
+                let s = f.get(i).ok_or(PathError::MissingColumn {
+                    line: ln + 1,
+                    column: i + 1,
+                })?;
                 s.parse::<f64>()
                     .ok()
                     .filter(|v| v.is_finite())
-                    .ok_or_else(|| format!("line {}: `{s}` is not a number", ln + 1))
+                    .ok_or_else(|| PathError::NotANumber {
+                        line: ln + 1,
+                        value: s.to_string(),
+                    })
             };
             pts.push([num(ix)? * unit, num(iy)? * unit]);
             on.push(match ion {
@@ -172,10 +191,7 @@ impl LaserPath {
             });
         }
         if pts.len() < 2 {
-            return Err(format!(
-                "a path needs at least 2 vertices, found {}",
-                pts.len()
-            ));
+            return Err(PathError::TooFewVertices(pts.len()));
         }
         Ok(LaserPath::polyline(&pts, &on, speed))
     }

@@ -1,12 +1,14 @@
 //! The `sintering.laser` stage: drives the heat balance along a laser path and collects
 //! bonds, per-particle temperatures, snapshots and the energy history.
 
-use crate::params::{param_specs, Integrator, LaserParams, PathKind, TopSurface};
+use crate::params::{Integrator, LaserParams, PathKind, TopSurface};
 use crate::path::LaserPath;
-use crate::thermal::{AbsorberGrid, Beam, Bed, Material, Plan};
+use crate::thermal::{plan_view, Beam, Bed, Material, Multirate};
 use grainpipe_core::model::{
-    Artifact, ArtifactKind, BodyAttribute, BodyShape, ContactGraph, Packing, Series, Table,
+    Artifact, ArtifactKind, ArtifactMeta, BodyAttribute, BodyShape, ContactGraph, Packing, Series,
+    Table,
 };
+use grainpipe_core::spatial::CellList;
 use grainpipe_core::stage::{input, InputMetas, Inputs, Outputs, Preflight, RunContext};
 use grainpipe_core::{PortSpec, StageError, StageInfo, TypedStage};
 use std::f64::consts::PI;
@@ -48,8 +50,9 @@ fn non_negative(v: f64, key: &str, what: &str) -> Result<(), StageError> {
     )
 }
 
-/// Checks every parameter value (no input needed).
-pub fn validate(p: &LaserParams) -> Result<(), StageError> {
+/// Checks every parameter value (no input needed) and, for `path: csv`, reads and parses the
+/// path file: the one file the stage reads, read here once and handed to the run.
+pub fn validate(p: &LaserParams) -> Result<Option<LaserPath>, StageError> {
     non_negative(p.power.si(), "power", "power in W")?;
     positive(p.beam_radius.si(), "beam_radius", "length")?;
     positive(p.specific_heat.si(), "specific_heat", "specific heat")?;
@@ -84,7 +87,7 @@ pub fn validate(p: &LaserParams) -> Result<(), StageError> {
     )?;
     positive(p.scan_speed.si(), "scan_speed", "velocity")?;
     non_negative(p.cooldown.si(), "cooldown", "time")?;
-    match p.path {
+    let csv = match p.path {
         PathKind::Raster => {
             positive(p.raster_length.si(), "raster_length", "length")?;
             positive(p.hatch_spacing.si(), "hatch_spacing", "length")?;
@@ -95,12 +98,13 @@ pub fn validate(p: &LaserParams) -> Result<(), StageError> {
                     "must be two finite lengths",
                 )?;
             }
+            None
         }
         PathKind::Csv => {
             positive(p.path_csv_unit.si(), "path_csv_unit", "length")?;
-            read_csv_path(p)?;
+            Some(read_csv_path(p)?)
         }
-    }
+    };
     positive(p.surface_depth.si(), "surface_depth", "length")?;
     if p.melting {
         check(
@@ -139,7 +143,7 @@ pub fn validate(p: &LaserParams) -> Result<(), StageError> {
     non_negative(p.snapshot_interval.si(), "snapshot_interval", "time")?;
     non_negative(p.history_interval.si(), "history_interval", "time")?;
     check(p.max_steps >= 1, "max_steps", "must be at least 1")?;
-    Ok(())
+    Ok(csv)
 }
 
 fn read_csv_path(p: &LaserParams) -> Result<LaserPath, StageError> {
@@ -155,26 +159,32 @@ fn read_csv_path(p: &LaserParams) -> Result<LaserPath, StageError> {
         .map_err(|e| StageError::param("path_csv", format!("{}: {e}", p.path_csv)))
 }
 
-/// The laser path for a packing (raster centred on the domain middle by default).
-pub fn build_path(p: &LaserParams, packing: &Packing) -> Result<LaserPath, StageError> {
-    match p.path {
-        PathKind::Raster => {
+/// The raster of `p` centred on `center` (its timing does not depend on the centre).
+fn raster(p: &LaserParams, center: [f64; 2]) -> LaserPath {
+    LaserPath::raster(
+        center,
+        p.raster_length.si(),
+        p.hatch_spacing.si(),
+        p.passes,
+        p.alternate,
+        p.scan_axis,
+        p.scan_speed.si(),
+    )
+}
+
+/// The laser path for a packing: the CSV path [`validate`] read, or the raster (centred on
+/// the domain middle by default).
+pub fn build_path(p: &LaserParams, csv: Option<&LaserPath>, packing: &Packing) -> LaserPath {
+    match csv {
+        Some(path) => path.clone(),
+        None => {
             let d = &packing.domain;
             let center = match p.raster_center {
                 Some(c) => [c[0].si(), c[1].si()],
                 None => [0.5 * (d.min[0] + d.max[0]), 0.5 * (d.min[1] + d.max[1])],
             };
-            Ok(LaserPath::raster(
-                center,
-                p.raster_length.si(),
-                p.hatch_spacing.si(),
-                p.passes,
-                p.alternate,
-                p.scan_axis,
-                p.scan_speed.si(),
-            ))
+            raster(p, center)
         }
-        PathKind::Csv => read_csv_path(p),
     }
 }
 
@@ -223,16 +233,18 @@ pub fn select_absorbers(
         // Covered = some higher particle's plan-view disc contains this centre.
         let rmax = radius.iter().cloned().fold(0.0, f64::max);
         let all: Vec<usize> = (0..n).collect();
-        let grid = AbsorberGrid::new(all, pos, (2.0 * rmax).max(1e-12));
+        let grid = plan_view(&all, pos, (2.0 * rmax).max(1e-12));
         ids.retain(|&i| {
             let mut covered = false;
-            grid.near([pos[i][0], pos[i][1]], rmax, |j| {
+            grid.visit([pos[i][0], pos[i][1], 0.0], rmax, |j, _| {
+                let j = j as usize;
                 if j != i && pos[j][2] > pos[i][2] {
                     let d2 = (pos[j][0] - pos[i][0]).powi(2) + (pos[j][1] - pos[i][1]).powi(2);
                     if d2 < radius[j] * radius[j] {
                         covered = true;
                     }
                 }
+                true
             });
             !covered
         });
@@ -240,9 +252,21 @@ pub fn select_absorbers(
     Ok(ids)
 }
 
-/// Runs the simulation.
+/// Runs the simulation: checks the parameters (reading a CSV path), then runs.
 pub fn simulate(
     p: &LaserParams,
+    packing: &Packing,
+    contacts: &ContactGraph,
+    ctx: &RunContext,
+) -> Result<RunResult, StageError> {
+    let csv = validate(p)?;
+    simulate_checked(p, csv.as_ref(), packing, contacts, ctx)
+}
+
+/// Runs the simulation with parameters [`validate`] accepted; `csv` is the path it read.
+pub fn simulate_checked(
+    p: &LaserParams,
+    csv: Option<&LaserPath>,
     packing: &Packing,
     contacts: &ContactGraph,
     ctx: &RunContext,
@@ -250,16 +274,16 @@ pub fn simulate(
     // Run the time loop on a worker of the current rayon pool: the per-step parallel
     // loops (several per CG iteration) then split locally instead of each waking the pool
     // from outside, which costs more than the work on a busy machine.
-    rayon::scope(|_| simulate_in_pool(p, packing, contacts, ctx))
+    rayon::scope(|_| simulate_in_pool(p, csv, packing, contacts, ctx))
 }
 
 fn simulate_in_pool(
     p: &LaserParams,
+    csv: Option<&LaserPath>,
     packing: &Packing,
     contacts: &ContactGraph,
     ctx: &RunContext,
 ) -> Result<RunResult, StageError> {
-    validate(p)?;
     let n = packing.bodies.len();
     if n == 0 {
         return Err(StageError::input("packing", "has no bodies"));
@@ -349,8 +373,8 @@ fn simulate_in_pool(
         (None, None) => vec![p.ambient_temperature.si(); n],
     };
     let absorbers = select_absorbers(p, &pos, &radius, contacts)?;
-    let path = build_path(p, packing)?;
-    let grid = AbsorberGrid::new(absorbers.clone(), &pos, beam.reach());
+    let path = build_path(p, csv, packing);
+    let grid = plan_view(&absorbers, &pos, beam.reach());
     let mut bed = Bed::new(pos, radius, &volume, pairs, bonded0, mat, t0);
 
     let t_end = path.duration() + p.cooldown.si();
@@ -389,7 +413,7 @@ fn simulate_in_pool(
     let mut reported = 0u64;
 
     let use_mr = explicit && p.multirate && p.substep;
-    let mut plan: Option<Plan> = None;
+    let mut plan: Option<Multirate> = None;
     let mut changed_particles: Vec<usize> = Vec::new();
     while t < t_end - eps {
         if use_mr && plan.is_none() {
@@ -653,7 +677,7 @@ fn simulate_in_pool(
 #[allow(clippy::too_many_arguments)]
 fn deposit(
     path: &LaserPath,
-    grid: &AbsorberGrid,
+    grid: &CellList,
     beam: &Beam,
     pos: &[[f64; 3]],
     radius: &[f64],
@@ -666,7 +690,8 @@ fn deposit(
     path.samples(a, b, beam.radius / 8.0, samples);
     let reach = beam.reach();
     for &(spot, w) in samples.iter() {
-        grid.near(spot, reach, |i| {
+        grid.visit([spot[0], spot[1], 0.0], reach, |i, _| {
+            let i = i as usize;
             let d2 = (pos[i][0] - spot[0]).powi(2) + (pos[i][1] - spot[1]).powi(2);
             let q = beam.flux(radius[i], d2);
             if q > 0.0 {
@@ -675,6 +700,7 @@ fn deposit(
                 }
                 qlas[i] += w * q;
             }
+            true
         });
     }
     // Sum in index order so the total does not depend on the visiting order.
@@ -799,40 +825,65 @@ impl History {
     }
 }
 
+/// Frames of the snapshot series over `t_end` with snapshots every `every` (0 = none): the
+/// initial state, one frame per snapshot time reached and the final state unless it falls on
+/// one. Bounds: the count is exact up to whether the last snapshot time and the end coincide
+/// in the accumulated time.
+fn frame_bounds(t_end: f64, every: f64) -> [u64; 2] {
+    let end = u64::from(t_end > 0.0);
+    if every > 0.0 {
+        let k = t_end / every;
+        [
+            1 + (k * (1.0 - 1e-9)).floor() as u64,
+            1 + end + (k * (1.0 + 1e-9)).floor() as u64,
+        ]
+    } else {
+        [1 + end; 2]
+    }
+}
+
 impl TypedStage for LaserSintering {
     type Params = LaserParams;
+    /// The path file of `path: csv`, parsed once, in preflight.
+    type Plan = Option<LaserPath>;
 
     fn info(&self) -> StageInfo {
-        StageInfo {
-            id: "sintering.laser",
-            version: "0.1.0",
-            doc: "Laser heating of a particle bed with bond formation (Method 2 paper, \
-                  section 5): per-particle heat balance m_i C_p dT_i/dt = Q r_i^2/r_L^2 (top-\
-                  surface particles within r_L of the spot) + k_b (T_R - T_i) + sum_j k_ij \
-                  (T_j - T_i) over the contact graph, integrated explicitly (paper) with \
-                  automatic stable sub-steps or implicitly (backward Euler, CG); a contact \
-                  bonds when both particles exceed T_S. Laser path: raster of a rectangle \
-                  (default: the section 5.2 five-pass square in the middle) or a CSV polyline.",
-            params: param_specs(),
-            inputs: vec![
-                PortSpec::new("packing", ArtifactKind::Packing, "particle bed (spheres or clumps)"),
-                PortSpec::new(
-                    "contacts",
-                    ArtifactKind::ContactGraph,
-                    "conduction pairs (contacts, existing bonds) and face lists (zmax = top surface)",
-                ),
-            ],
-            outputs: vec![
-                PortSpec::new("bonds", ArtifactKind::ContactGraph, "input contacts and faces with the bonds formed, and body positions"),
-                PortSpec::new("packing", ArtifactKind::Packing, "input packing with attributes temperature (final) [K], peak_temperature [K], time_above_sintering [s], bond_count"),
-                PortSpec::new("snapshots", ArtifactKind::Series, "packing frames with a temperature attribute every snapshot_interval, plus the initial and final state"),
-                PortSpec::new("history", ArtifactKind::Table, "time, bonds, bonded fractions, max/mean temperature, laser/stored/convected energy, energy residual, dt, sub-steps, stability limit"),
-            ],
-        }
+        StageInfo::new(
+            "sintering.laser",
+            "0.1.0",
+            "Laser heating of a particle bed with bond formation (Method 2 paper, \
+             section 5): per-particle heat balance m_i C_p dT_i/dt = Q r_i^2/r_L^2 (top-\
+             surface particles within r_L of the spot) + k_b (T_R - T_i) + sum_j k_ij \
+             (T_j - T_i) over the contact graph, integrated explicitly (paper) with \
+             automatic stable sub-steps or implicitly (backward Euler, CG); a contact \
+             bonds when both particles exceed T_S. Laser path: raster of a rectangle \
+             (default: the section 5.2 five-pass square in the middle) or a CSV polyline.",
+        )
+        .inputs(vec![
+            PortSpec::new("packing", ArtifactKind::Packing, "particle bed (spheres or clumps)"),
+            PortSpec::new(
+                "contacts",
+                ArtifactKind::ContactGraph,
+                "conduction pairs (contacts, existing bonds) and face lists (zmax = top surface)",
+            ),
+        ])
+        .outputs(vec![
+            PortSpec::new("bonds", ArtifactKind::ContactGraph, "input contacts and faces with the bonds formed, and body positions"),
+            PortSpec::new("packing", ArtifactKind::Packing, "input packing with attributes temperature (final) [K], peak_temperature [K], time_above_sintering [s], bond_count"),
+            PortSpec::new("snapshots", ArtifactKind::Series, "packing frames with a temperature attribute every snapshot_interval, plus the initial and final state"),
+            PortSpec::new("history", ArtifactKind::Table, "time, bonds, bonded fractions, max/mean temperature, laser/stored/convected energy, energy residual, dt, sub-steps, stability limit"),
+        ])
     }
 
-    fn preflight(&self, p: &LaserParams, inputs: &InputMetas) -> Result<Preflight, StageError> {
-        validate(p)?;
+    /// Announces the outputs: the packing is the input packing (same bodies, box and
+    /// periodicity, so its metadata carries over), the bond graph keeps the input contacts
+    /// (their count carries over), the snapshot count follows from the path duration.
+    fn preflight(
+        &self,
+        p: &LaserParams,
+        inputs: &InputMetas,
+    ) -> Result<Preflight<Option<LaserPath>>, StageError> {
+        let csv = validate(p)?;
         for (port, kind) in [
             ("packing", ArtifactKind::Packing),
             ("contacts", ArtifactKind::ContactGraph),
@@ -849,40 +900,45 @@ impl TypedStage for LaserSintering {
             }
         }
         let n = inputs["packing"].count_estimate.max(1);
-        let duration = match p.path {
-            PathKind::Raster => {
-                p.passes as f64 * p.raster_length.si() / p.scan_speed.si() + p.cooldown.si()
-            }
-            PathKind::Csv => read_csv_path(p)?.duration() + p.cooldown.si(),
+        // The same sum as the run's end time (a raster's timing does not depend on its centre).
+        let duration = match &csv {
+            Some(path) => path.duration(),
+            None => raster(p, [0.0; 2]).duration(),
         };
-        let frames = if p.snapshot_interval.si() > 0.0 {
-            (duration / p.snapshot_interval.si()).ceil() as u64 + 2
+        let t_end = duration + p.cooldown.si();
+        let frames = frame_bounds(t_end, p.snapshot_interval.si());
+        let rows = if p.history_interval.si() > 0.0 {
+            (t_end / p.history_interval.si()).ceil() as u64 + 2
         } else {
-            2
+            0
         };
         // Per particle: ~16 f64 of state and scratch, ~8 contacts x 24 bytes, and one
         // packing clone (~100 bytes per body) per snapshot frame.
-        let memory = n * (16 * 8 + 8 * 24) + frames * n * 112;
-        let mut pf = Preflight::from_info(&self.info(), memory);
-        for (name, meta) in pf.outputs.iter_mut() {
-            meta.count_estimate = match name.as_str() {
-                "packing" | "bonds" => n,
-                "snapshots" => frames,
-                _ => 0,
-            };
-        }
-        Ok(pf)
+        let memory = n * (16 * 8 + 8 * 24) + frames[1] * n * 112;
+        Ok(Preflight::from_info(&self.info(), memory)
+            .announce("bonds", inputs["contacts"].clone())
+            .announce("packing", inputs["packing"].clone())
+            .announce(
+                "snapshots",
+                ArtifactMeta::of(ArtifactKind::Series).with_count(frames[1], Some(frames)),
+            )
+            .announce(
+                "history",
+                ArtifactMeta::of(ArtifactKind::Table).with_count(rows, None),
+            )
+            .with_plan(csv))
     }
 
     fn run(
         &self,
         p: &LaserParams,
+        csv: &Option<LaserPath>,
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
         let packing = input(inputs, "packing", Artifact::as_packing)?;
         let contacts = input(inputs, "contacts", Artifact::as_contact_graph)?;
-        let r = simulate(p, packing, contacts, ctx)?;
+        let r = simulate_checked(p, csv.as_ref(), packing, contacts, ctx)?;
         let mut out = Outputs::new();
         out.insert("bonds".into(), Artifact::ContactGraph(r.bonds));
         out.insert("packing".into(), Artifact::Packing(r.packing));

@@ -5,6 +5,7 @@
 //! and the stored energy is exactly the sum of what the steps added.
 
 use crate::params::BeamProfile;
+use grainpipe_core::spatial::CellList;
 use rayon::prelude::*;
 
 /// Particles per parallel work item. Fixed (not derived from the thread count) so that
@@ -74,81 +75,48 @@ impl Beam {
     }
 }
 
-/// Candidate absorbers binned on a square grid in x-y for spot queries.
-#[derive(Clone, Debug)]
-pub struct AbsorberGrid {
-    pub ids: Vec<usize>,
-    origin: [f64; 2],
-    cell: f64,
-    dims: [usize; 2],
-    /// CSR over cells: members of cell c are `order[start[c]..start[c+1]]`.
-    start: Vec<usize>,
-    order: Vec<usize>,
+/// The plan view (x-y) of the particles `ids`: a cell list over their x-y bounding box with
+/// one cell along z, so a query at `[x, y, 0]` visits every listed particle within the
+/// horizontal `reach` of (x, y) whatever its height (and possibly more: callers test exactly).
+pub fn plan_view(ids: &[usize], pos: &[[f64; 3]], cell: f64) -> CellList {
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for &i in ids {
+        for a in 0..2 {
+            lo[a] = lo[a].min(pos[i][a]);
+            hi[a] = hi[a].max(pos[i][a]);
+        }
+    }
+    if ids.is_empty() {
+        lo = [0.0; 2];
+        hi = [0.0; 2];
+    }
+    // z: a box one cell high; every height is clamped into it.
+    let mut g = CellList::new(
+        [lo[0], lo[1], 0.0],
+        [hi[0] - lo[0], hi[1] - lo[1], cell],
+        [false; 3],
+        cell,
+    );
+    for &i in ids {
+        g.insert(i as u32, [pos[i][0], pos[i][1], 0.0]);
+    }
+    g
 }
 
-impl AbsorberGrid {
-    pub fn new(ids: Vec<usize>, pos: &[[f64; 3]], cell: f64) -> Self {
-        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        for &i in &ids {
-            for a in 0..2 {
-                lo[a] = lo[a].min(pos[i][a]);
-                hi[a] = hi[a].max(pos[i][a]);
-            }
-        }
-        if ids.is_empty() {
-            lo = [0.0; 2];
-            hi = [0.0; 2];
-        }
-        let dims = [0, 1].map(|a| (((hi[a] - lo[a]) / cell).floor() as usize + 1).min(1 << 14));
-        let cell_of = |p: &[f64; 3]| {
-            let c = [0, 1].map(|a| (((p[a] - lo[a]) / cell) as usize).min(dims[a] - 1));
-            c[0] + dims[0] * c[1]
-        };
-        let mut start = vec![0usize; dims[0] * dims[1] + 1];
-        for &i in &ids {
-            start[cell_of(&pos[i]) + 1] += 1;
-        }
-        for c in 0..dims[0] * dims[1] {
-            start[c + 1] += start[c];
-        }
-        let mut fill = start.clone();
-        let mut order = vec![0; ids.len()];
-        for &i in &ids {
-            let c = cell_of(&pos[i]);
-            order[fill[c]] = i;
-            fill[c] += 1;
-        }
-        AbsorberGrid {
-            ids,
-            origin: lo,
-            cell,
-            dims,
-            start,
-            order,
-        }
-    }
-
-    /// Calls `f(i)` for every absorber within `reach` (a bound; callers test exactly).
-    pub fn near(&self, s: [f64; 2], reach: f64, mut f: impl FnMut(usize)) {
-        if self.ids.is_empty() {
-            return;
-        }
-        let lo = [0, 1].map(|a| ((s[a] - reach - self.origin[a]) / self.cell).floor());
-        let hi = [0, 1].map(|a| ((s[a] + reach - self.origin[a]) / self.cell).floor());
-        if hi[0] < 0.0 || hi[1] < 0.0 {
-            return;
-        }
-        let lo = [0, 1].map(|a| lo[a].max(0.0) as usize);
-        let hi = [0, 1].map(|a| (hi[a] as usize).min(self.dims[a] - 1));
-        for cy in lo[1]..=hi[1] {
-            for cx in lo[0]..=hi[0] {
-                let c = cx + self.dims[0] * cy;
-                for &i in &self.order[self.start[c]..self.start[c + 1]] {
-                    f(i);
-                }
-            }
-        }
-    }
+/// Why an implicit step failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ThermalError {
+    #[error(
+        "conjugate gradients reached relative residual {residual:.3e} after {iterations} \
+         iterations, above cg_tolerance {tolerance:.1e}"
+    )]
+    NotConverged {
+        residual: f64,
+        iterations: usize,
+        tolerance: f64,
+    },
+    #[error("conjugate gradients diverged (non-finite residual)")]
+    Diverged,
 }
 
 /// Per-step totals.
@@ -204,7 +172,7 @@ pub struct Bed {
 
 /// Global explicit step and the particles sub-cycled inside it.
 #[derive(Clone, Debug)]
-pub struct Plan {
+pub struct Multirate {
     pub dt: f64,
     pub stiff: Vec<usize>,
     pub is_stiff: Vec<bool>,
@@ -438,7 +406,7 @@ impl Bed {
     /// particle is stiff when safety x its limit is below the global step; the global step
     /// (`fixed`, or at most `dt_max`) minimises the work (N - k)/dt + 2 k/(safety L_min) over
     /// the number k of stiff particles (a stiff particle-step counts double: sequential).
-    pub fn plan(&self, dt_max: f64, safety: f64, fixed: Option<f64>) -> Plan {
+    pub fn plan(&self, dt_max: f64, safety: f64, fixed: Option<f64>) -> Multirate {
         let lim = self.limits();
         let mut order: Vec<usize> = (0..self.n).collect();
         order.sort_by(|&a, &b| lim[a].total_cmp(&lim[b]).then(a.cmp(&b)));
@@ -470,7 +438,7 @@ impl Bed {
             .collect();
         let stiff: Vec<usize> = (0..self.n).filter(|&i| is_stiff[i]).collect();
         let stiff_limit = stiff.iter().map(|&i| lim[i]).fold(f64::INFINITY, f64::min);
-        Plan {
+        Multirate {
             dt,
             stiff,
             is_stiff,
@@ -482,7 +450,7 @@ impl Bed {
     /// Keeps `plan` valid after the conductance sums of `changed` particles grew (bonding):
     /// a particle whose limit now breaks the global step joins the sub-cycled set. The
     /// global step itself is kept, so bonding costs no re-sort.
-    pub fn update_plan(&self, plan: &mut Plan, changed: &[usize]) {
+    pub fn update_plan(&self, plan: &mut Multirate, changed: &[usize]) {
         let mut added = false;
         for &i in changed {
             let l = if self.ksum[i] > 0.0 {
@@ -512,7 +480,7 @@ impl Bed {
         &mut self,
         dt: f64,
         qlas: &[f64],
-        plan: &Plan,
+        plan: &Multirate,
         safety: f64,
     ) -> (StepStats, u64) {
         let kb = self.mat.convection;
@@ -630,7 +598,12 @@ impl Bed {
     /// Backward Euler step: (C/dt + K + k_b) T' = C/dt T + k_b T_R + q_laser, solved by
     /// Jacobi-preconditioned conjugate gradients (the matrix is symmetric positive definite
     /// when k_b > 0 or dt is finite). Not available with melting.
-    pub fn implicit_step(&mut self, dt: f64, qlas: &[f64], tol: f64) -> Result<StepStats, String> {
+    pub fn implicit_step(
+        &mut self,
+        dt: f64,
+        qlas: &[f64],
+        tol: f64,
+    ) -> Result<StepStats, ThermalError> {
         let n = self.n;
         let kb = self.mat.convection;
         let tr = self.mat.ambient;
@@ -667,10 +640,11 @@ impl Bed {
         let max_it = 10 * n + 100;
         while rel > tol {
             if it >= max_it {
-                return Err(format!(
-                    "conjugate gradients reached relative residual {rel:.3e} after {it} \
-                     iterations, above cg_tolerance {tol:.1e}"
-                ));
+                return Err(ThermalError::NotConverged {
+                    residual: rel,
+                    iterations: it,
+                    tolerance: tol,
+                });
             }
             matvec(&p, &mut ap);
             let alpha = rz / dot(&p, &ap);
@@ -690,7 +664,7 @@ impl Bed {
             rel = dot(&r, &r).sqrt() / bnorm;
             it += 1;
             if !rel.is_finite() {
-                return Err("conjugate gradients diverged (non-finite residual)".into());
+                return Err(ThermalError::Diverged);
             }
         }
         let mut st = StepStats {

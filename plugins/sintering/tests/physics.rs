@@ -2,7 +2,8 @@
 //! balance, energy conservation, the explicit stability limit and thread-count determinism.
 
 use grainpipe_core::model::{
-    Artifact, BodyAttribute, Contact, ContactGraph, Domain, Packing, Table,
+    Artifact, ArtifactKind, ArtifactMeta, BodyAttribute, Contact, ContactGraph, Domain, Packing,
+    Table,
 };
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::units::Q;
@@ -790,6 +791,17 @@ fn stage_contract_units_and_ports() {
         .is_err());
     // Through the typed stage: ports in, ports out.
     let (pk, g) = lattice(6, 6, 1, 14.14e-6);
+    let (nb, nc) = (pk.bodies.len() as u64, g.contacts.len() as u64);
+    let mut metas = grainpipe_core::InputMetas::new();
+    metas.insert(
+        "packing".into(),
+        ArtifactMeta::packing(pk.domain.min, pk.domain.max, pk.domain.periodic)
+            .with_count(nb, Some([nb, nb])),
+    );
+    metas.insert(
+        "contacts".into(),
+        ArtifactMeta::of(ArtifactKind::ContactGraph).with_count(nc, Some([nc, nc])),
+    );
     let mut inputs = grainpipe_core::Inputs::new();
     inputs.insert("packing".into(), Arc::new(Artifact::Packing(pk)));
     inputs.insert("contacts".into(), Arc::new(Artifact::ContactGraph(g)));
@@ -799,11 +811,22 @@ fn stage_contract_units_and_ports() {
         cooldown: Q::new(10e-6),
         ..Default::default()
     };
+    let pf = LaserSintering.preflight(&p, &metas).unwrap();
     let out = LaserSintering
-        .run(&p, &inputs, &RunContext::new(1, &SilentReporter))
+        .run(&p, &pf.plan, &inputs, &RunContext::new(1, &SilentReporter))
         .unwrap();
     let keys: Vec<&str> = out.keys().map(|k| k.as_str()).collect();
     assert_eq!(keys, ["bonds", "packing", "snapshots", "history"]);
+    // Every output is what preflight announced (as the engine checks): the packing and the
+    // contacts carry over, and 110 us with snapshots every 250 us give the initial and
+    // final frames.
+    for (port, meta) in &pf.outputs {
+        meta.check(&out[port])
+            .unwrap_or_else(|e| panic!("{port}: {e}"));
+    }
+    assert_eq!(pf.outputs["packing"].count_bounds, Some([nb, nb]));
+    assert_eq!(pf.outputs["bonds"].count_bounds, Some([nc, nc]));
+    assert_eq!(pf.outputs["snapshots"].count_bounds, Some([1, 2]));
     // Impossible parameters are refused before running.
     let bad = LaserParams {
         dt_safety: 1.5,

@@ -1,10 +1,11 @@
 #![allow(dead_code)]
-//! Shared helpers: running a stage directly and an independent brute-force overlap check.
+//! Shared helpers: running a stage directly (its preflight announcement checked against what
+//! it gives, as the engine does) and an independent brute-force overlap check.
 
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{
-    Artifact, Clump, ClumpLibrary, ClumpSphere, Inputs, Outputs, Packing, RunContext, StageError,
-    TypedStage,
+    Artifact, Clump, ClumpLibrary, ClumpSphere, InputMetas, Inputs, Outputs, Packing,
+    RunContext, StageError, TypedStage,
 };
 use std::f64::consts::PI;
 use std::sync::Arc;
@@ -17,14 +18,24 @@ pub fn run<S: TypedStage>(
 ) -> Result<Outputs, StageError> {
     let p: S::Params = serde_json::from_value(params).expect("params");
     let mut inputs = Inputs::new();
+    let mut metas = InputMetas::new();
     if let Some(l) = lib {
         inputs.insert(
             "library".into(),
             Arc::new(Artifact::ClumpLibrary(l.clone())),
         );
+        metas.insert(
+            "library".into(),
+            grainpipe_core::ArtifactMeta::of(grainpipe_core::ArtifactKind::ClumpLibrary),
+        );
     }
-    stage.preflight(&p, &Default::default())?;
-    stage.run(&p, &inputs, &RunContext::new(seed, &SilentReporter))
+    let pf = stage.preflight(&p, &metas)?;
+    let out = stage.run(&p, &pf.plan, &inputs, &RunContext::new(seed, &SilentReporter))?;
+    for (port, meta) in &pf.outputs {
+        meta.check(&out[port.as_str()])
+            .unwrap_or_else(|e| panic!("output `{port}` contradicts its preflight: {e}"));
+    }
+    Ok(out)
 }
 
 pub fn packing(out: &Outputs) -> &Packing {
