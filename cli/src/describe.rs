@@ -336,6 +336,7 @@ pub fn announced(m: &grainpipe_core::ArtifactMeta) -> Option<String> {
         parts.push(format!("periodic {p:?}"));
     }
     match m.count_bounds {
+        Some([1, 1]) => parts.push("1 item".to_string()),
         Some([lo, hi]) if lo == hi => parts.push(format!("{lo} items")),
         Some([lo, hi]) => parts.push(format!("{lo}..{hi} items")),
         None if m.count_estimate > 0 && m.grid.is_none() => {

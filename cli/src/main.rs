@@ -113,8 +113,11 @@ fn main() -> ExitCode {
                 (None, false) => Err("name a stage or format, or use --json for all".to_string()),
                 (Some(id), true) => match registry.stage(&id) {
                     Some(x) => Ok(json_text(&describe::stage_json(x))),
-                    None => describe::describe(&registry, &id)
-                        .and_then(|_| Err(format!("`{id}` is an export format; --json describes stages"))),
+                    None => describe::describe(&registry, &id).and_then(|_| {
+                        Err(format!(
+                            "`{id}` is an export format; --json describes stages"
+                        ))
+                    }),
                 },
                 (Some(id), false) => describe::describe(&registry, &id),
             };

@@ -317,9 +317,21 @@ pub fn plan(
             .map_err(|e| stage_error(doc, i, &*stages[i], e))?;
         memory = memory.saturating_add(pf.memory_bytes);
         let seed = crate::derive_seed(doc.seed, s.id.as_bytes());
-        let input_files = hash_input_files(&*stages[i], &params[i])
-            .map_err(|(key, m)| err(doc, s.param_locs.get(&key).copied().unwrap_or(s.uses_loc), m))?;
-        let key = cache_key(&*stages[i], &params[i], seed, &input_files, &wires[i], &planned);
+        let input_files = hash_input_files(&*stages[i], &params[i]).map_err(|(key, m)| {
+            err(
+                doc,
+                s.param_locs.get(&key).copied().unwrap_or(s.uses_loc),
+                m,
+            )
+        })?;
+        let key = cache_key(
+            &*stages[i],
+            &params[i],
+            seed,
+            &input_files,
+            &wires[i],
+            &planned,
+        );
         planned[i] = Some(PlannedStep {
             index: i,
             id: s.id.clone(),
@@ -556,7 +568,10 @@ fn hash_input_files(
     let mut out = Vec::new();
     for spec in stage.info().params.iter().filter(|p| p.reads_file) {
         let mut paths = Vec::new();
-        collect_paths(params.get(spec.name).unwrap_or(&serde_json::Value::Null), &mut paths);
+        collect_paths(
+            params.get(spec.name).unwrap_or(&serde_json::Value::Null),
+            &mut paths,
+        );
         for path in paths {
             let hash = crate::fsutil::content_hash(Path::new(&path)).map_err(|e| {
                 (
@@ -749,17 +764,20 @@ pub fn execute(
             Some(o) => o,
             None => {
                 let ctx = RunContext::new(step.seed, &*reporter);
-                let o = step.stage.run(&step.params, &step.prepared, &inputs, &ctx).map_err(|e| {
-                    let class_input = matches!(
-                        e,
-                        StageError::InvalidParam { .. } | StageError::InvalidInput { .. }
-                    );
-                    let mut pe = stage_error(doc, i, &*step.stage, e);
-                    if !class_input {
-                        pe.class = crate::pipeline::ErrorClass::Run;
-                    }
-                    pe
-                })?;
+                let o = step
+                    .stage
+                    .run(&step.params, &step.prepared, &inputs, &ctx)
+                    .map_err(|e| {
+                        let class_input = matches!(
+                            e,
+                            StageError::InvalidParam { .. } | StageError::InvalidInput { .. }
+                        );
+                        let mut pe = stage_error(doc, i, &*step.stage, e);
+                        if !class_input {
+                            pe.class = crate::pipeline::ErrorClass::Run;
+                        }
+                        pe
+                    })?;
                 check_outputs(doc, i, step, &o)?;
                 if let Some(d) = &opts.cache_dir {
                     if let Err(e) = cache_store(d, &step.cache_key, &o) {

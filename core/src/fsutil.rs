@@ -50,30 +50,6 @@ pub fn atomic_write_bytes(path: &Path, bytes: &[u8]) -> Result<(), String> {
     atomic_write(path, |tmp| std::fs::write(tmp, bytes))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn failed_write_leaves_no_file() {
-        let dir = tempfile::tempdir().unwrap();
-        let target = dir.path().join("out.bin");
-        let r = atomic_write(&target, |tmp| {
-            std::fs::write(tmp, b"partial").unwrap();
-            Err("simulated crash")
-        });
-        assert!(r.is_err());
-        assert!(!target.exists());
-        assert_eq!(
-            std::fs::read_dir(dir.path()).unwrap().count(),
-            0,
-            "temp file left behind"
-        );
-        atomic_write_bytes(&target, b"ok").unwrap();
-        assert_eq!(std::fs::read(&target).unwrap(), b"ok");
-    }
-}
-
 /// BLAKE3 of a file's bytes, or of a directory's files (relative names and contents, in
 /// sorted order, recursively), as hex. Identifies an input by content, not by path or time.
 pub fn content_hash(path: &Path) -> std::io::Result<String> {
@@ -98,4 +74,52 @@ fn hash_into(path: &Path, relative: &Path, h: &mut blake3::Hasher) -> std::io::R
         h.update_reader(std::fs::File::open(path)?)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn failed_write_leaves_no_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let target = dir.path().join("out.bin");
+        let r = atomic_write(&target, |tmp| {
+            std::fs::write(tmp, b"partial").unwrap();
+            Err("simulated crash")
+        });
+        assert!(r.is_err());
+        assert!(!target.exists());
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            0,
+            "temp file left behind"
+        );
+        atomic_write_bytes(&target, b"ok").unwrap();
+        assert_eq!(std::fs::read(&target).unwrap(), b"ok");
+    }
+
+    #[test]
+    fn content_hash_follows_bytes_and_names_not_times() {
+        let d = tempfile::tempdir().unwrap();
+        let f = d.path().join("a.txt");
+        std::fs::write(&f, "one").unwrap();
+        let h1 = super::content_hash(&f).unwrap();
+        std::fs::write(&f, "one").unwrap();
+        assert_eq!(
+            super::content_hash(&f).unwrap(),
+            h1,
+            "rewriting the same bytes"
+        );
+        std::fs::write(&f, "two").unwrap();
+        assert_ne!(super::content_hash(&f).unwrap(), h1);
+        // A directory: renaming a file inside changes the hash, as does adding one.
+        let h_dir = super::content_hash(d.path()).unwrap();
+        std::fs::rename(&f, d.path().join("b.txt")).unwrap();
+        let h_renamed = super::content_hash(d.path()).unwrap();
+        assert_ne!(h_renamed, h_dir);
+        std::fs::write(d.path().join("c.txt"), "").unwrap();
+        assert_ne!(super::content_hash(d.path()).unwrap(), h_renamed);
+        assert!(super::content_hash(&d.path().join("missing")).is_err());
+    }
 }

@@ -10,8 +10,8 @@ pub mod pipeline;
 pub mod plugin_host;
 pub mod registry;
 pub mod spatial;
-pub mod testing;
 pub mod stage;
+pub mod testing;
 pub mod units;
 
 // Lets `#[params]`-generated code name this crate from inside it too.
@@ -19,9 +19,9 @@ extern crate self as grainpipe_core;
 
 pub use grainpipe_derive::{params, ParamChoice};
 pub use model::*;
-pub use serde_json;
 pub use params::{ParamType, Params};
 pub use registry::{Exporter, Registry};
+pub use serde_json;
 pub use stage::{
     input, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, Prepared, RunContext,
     Stage, StageError, StageInfo, TypedStage,

@@ -433,6 +433,16 @@ impl Packing {
 
     /// Analytic solid volume fraction (bodies assumed non-overlapping, excluded solids not
     /// subtracted from the box volume).
+    /// Mean volume-equivalent diameter of the bodies [m] (0 without bodies).
+    pub fn mean_diameter(&self) -> f64 {
+        let n = self.bodies.len().max(1) as f64;
+        self.bodies
+            .iter()
+            .map(|b| (6.0 * self.body_volume(b) / PI).cbrt())
+            .sum::<f64>()
+            / n
+    }
+
     pub fn volume_fraction(&self) -> f64 {
         self.solid_volume() / self.domain.volume()
     }
@@ -704,6 +714,9 @@ pub struct ArtifactMeta {
     pub periodic: Option<[bool; 3]>,
     /// A typical body size (mean diameter) [m] when known before running. Not checked.
     pub length_scale: Option<f64>,
+    /// The exact mean volume-equivalent body diameter of a packing [m], when the parameters
+    /// fix it (equal spheres). Checked to 1e-9 relative.
+    pub mean_diameter: Option<f64>,
 }
 
 impl ArtifactMeta {
@@ -716,6 +729,7 @@ impl ArtifactMeta {
             domain_box: None,
             periodic: None,
             length_scale: None,
+            mean_diameter: None,
         }
     }
 
@@ -745,6 +759,13 @@ impl ArtifactMeta {
 
     pub fn with_length_scale(mut self, length: f64) -> Self {
         self.length_scale = Some(length);
+        self
+    }
+
+    /// Announces the exact mean volume-equivalent diameter (and uses it as length scale).
+    pub fn with_mean_diameter(mut self, diameter: f64) -> Self {
+        self.mean_diameter = Some(diameter);
+        self.length_scale = Some(diameter);
         self
     }
 
@@ -786,13 +807,20 @@ impl ArtifactMeta {
                     .map(|k| (max[k] - min[k]).abs())
                     .fold(0.0f64, f64::max)
                     .max(f64::MIN_POSITIVE);
-                let close = |u: [f64; 3], v: [f64; 3]| {
-                    (0..3).all(|k| (u[k] - v[k]).abs() <= 1e-9 * scale)
-                };
+                let close =
+                    |u: [f64; 3], v: [f64; 3]| (0..3).all(|k| (u[k] - v[k]).abs() <= 1e-9 * scale);
                 if !close(min, p.domain.min) || !close(max, p.domain.max) {
                     return Err(format!(
                         "announced the domain box {min:?}..{max:?} but gave {:?}..{:?}",
                         p.domain.min, p.domain.max
+                    ));
+                }
+            }
+            if let Some(d) = self.mean_diameter {
+                let got = p.mean_diameter();
+                if (got - d).abs() > 1e-9 * d.abs() {
+                    return Err(format!(
+                        "announced a mean body diameter of {d:e} m but gave {got:e} m"
                     ));
                 }
             }
@@ -808,7 +836,9 @@ impl ArtifactMeta {
         if let Some([lo, hi]) = self.count_bounds {
             let n = Self::count_of(a);
             if n < lo || n > hi {
-                return Err(format!("announced between {lo} and {hi} items but gave {n}"));
+                return Err(format!(
+                    "announced between {lo} and {hi} items but gave {n}"
+                ));
             }
         }
         Ok(())

@@ -25,7 +25,9 @@ use std::sync::Arc;
 fn json_schema_of(default: &Value) -> Value {
     match default {
         Value::Bool(_) => json!({"type": "boolean"}),
-        Value::Number(n) if n.is_f64() => json!({"anyOf": [{"type": "number"}, {"type": "string"}]}),
+        Value::Number(n) if n.is_f64() => {
+            json!({"anyOf": [{"type": "number"}, {"type": "string"}]})
+        }
         Value::Number(_) => json!({"anyOf": [{"type": "integer"}, {"type": "string"}]}),
         Value::String(_) => json!({"type": "string"}),
         Value::Array(_) => json!({"type": "array"}),
@@ -341,14 +343,16 @@ impl Stage for ForeignStage {
                 .find(|p| p.name == k)
                 .ok_or_else(|| StageError::UnknownParam {
                     key: k.clone(),
-                    suggestion: crate::registry::closest(k, self.info.params.iter().map(|p| p.name)),
+                    suggestion: crate::registry::closest(
+                        k,
+                        self.info.params.iter().map(|p| p.name),
+                    ),
                 })?;
             let mut v = v.clone();
             let dimensional = !spec.unit.is_empty() && spec.unit != "1";
             if dimensional {
                 if let Value::String(s) = &v {
-                    let (_, want) =
-                        parse_unit(&spec.unit).map_err(|e| StageError::param(k, e))?;
+                    let (_, want) = parse_unit(&spec.unit).map_err(|e| StageError::param(k, e))?;
                     let q = parse_quantity(s).map_err(|e| StageError::param(k, e))?;
                     if q.dim != want {
                         return Err(StageError::param(
@@ -741,7 +745,10 @@ fn unmarshal(kind: ArtifactKind, p: &PendingOutput) -> Result<Artifact, String> 
                     )
                 })?,
             };
-            if convention.component_names(components, grid.dims[2]).is_none() {
+            if convention
+                .component_names(components, grid.dims[2])
+                .is_none()
+            {
                 return Err(format!(
                     "{components} components do not fit the `{}` convention",
                     convention.name()

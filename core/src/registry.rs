@@ -149,7 +149,10 @@ impl Registry {
                     return Err(format!("{id}: parameter `{}` is declared twice", p.name));
                 }
                 if !keys.contains(&p.name) {
-                    return Err(format!("{id}: declared parameter `{}` is not a field", p.name));
+                    return Err(format!(
+                        "{id}: declared parameter `{}` is not a field",
+                        p.name
+                    ));
                 }
                 if p.doc.trim().is_empty() {
                     return Err(format!("{id}: parameter `{}` has no doc", p.name));

@@ -104,12 +104,7 @@ impl CellList {
     /// `reach` of `p`; `shift` is the period translation to add to the item's stored position
     /// (zero on non-periodic axes). On a periodic axis an item can be reported once per image.
     /// Stops early when `f` returns `false`; returns `false` if stopped.
-    pub fn visit(
-        &self,
-        p: [f64; 3],
-        reach: f64,
-        mut f: impl FnMut(u32, [f64; 3]) -> bool,
-    ) -> bool {
+    pub fn visit(&self, p: [f64; 3], reach: f64, mut f: impl FnMut(u32, [f64; 3]) -> bool) -> bool {
         let mut lo = [0i64; 3];
         let mut hi = [0i64; 3];
         for a in 0..3 {
@@ -264,8 +259,7 @@ mod tests {
             found.sort_unstable();
             let brute: Vec<usize> = (0..pts.len())
                 .filter(|&j| {
-                    let d = [0, 1, 2]
-                        .map(|a| min_image(pts[j][a] - p[a], len[a], periodic[a]));
+                    let d = [0, 1, 2].map(|a| min_image(pts[j][a] - p[a], len[a], periodic[a]));
                     j != i && d.iter().map(|x| x * x).sum::<f64>() < r * r
                 })
                 .collect();

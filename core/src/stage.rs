@@ -6,10 +6,10 @@
 //! the C ABI for third-party plugins).
 
 use crate::model::{Artifact, ArtifactKind, ArtifactMeta};
+use crate::params::{unknown_keys, Params};
 use indexmap::IndexMap;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use crate::params::{unknown_keys, Params};
 use std::any::Any;
 use std::sync::Arc;
 

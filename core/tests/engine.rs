@@ -4,8 +4,8 @@
 use grainpipe_core::engine::{execute, plan, PlanOptions, RunOptions, SilentObserver};
 use grainpipe_core::pipeline::{ErrorClass, PipelineDoc};
 use grainpipe_core::{
-    params, Artifact, ArtifactKind, ArtifactMeta, InputMetas, Inputs, Outputs, PortSpec,
-    Preflight, Registry, RunContext, StageError, StageInfo, Table, TypedStage,
+    params, Artifact, ArtifactKind, ArtifactMeta, InputMetas, Inputs, Outputs, PortSpec, Preflight,
+    Registry, RunContext, StageError, StageInfo, Table, TypedStage,
 };
 use rand::RngExt;
 use std::path::Path;
@@ -26,23 +26,35 @@ struct SourceParams {
     noise: Noise,
 }
 
+/// A stage that includes the same group with other defaults.
+#[params]
+struct NoisyParams {
+    #[param(flatten, default = Noise { fail: true })]
+    noise: Noise,
+}
+
 /// Gives `n` uniform random numbers from the stage's stream.
 struct Source;
 impl TypedStage for Source {
     type Params = SourceParams;
     type Plan = ();
     fn info(&self) -> StageInfo {
-        StageInfo::new("test.source", "1", "random numbers")
-            .outputs(vec![PortSpec::new("table", ArtifactKind::Table, "numbers")])
+        StageInfo::new("test.source", "1", "random numbers").outputs(vec![PortSpec::new(
+            "table",
+            ArtifactKind::Table,
+            "numbers",
+        )])
     }
     fn preflight(&self, p: &SourceParams, _: &InputMetas) -> Result<Preflight, StageError> {
         if p.n == 0 {
             return Err(StageError::param("n", "must be positive"));
         }
-        Ok(Preflight::from_info(&self.info(), (p.n * 8) as u64).announce(
-            "table",
-            ArtifactMeta::of(ArtifactKind::Table).with_count(p.n as u64, Some([p.n as u64; 2])),
-        ))
+        Ok(
+            Preflight::from_info(&self.info(), (p.n * 8) as u64).announce(
+                "table",
+                ArtifactMeta::of(ArtifactKind::Table).with_count(p.n as u64, Some([p.n as u64; 2])),
+            ),
+        )
     }
     fn run(
         &self,
@@ -129,8 +141,11 @@ impl TypedStage for ReadNumbers {
     type Params = ReadParams;
     type Plan = Vec<f64>;
     fn info(&self) -> StageInfo {
-        StageInfo::new("test.read", "1", "reads numbers from a file")
-            .outputs(vec![PortSpec::new("table", ArtifactKind::Table, "numbers")])
+        StageInfo::new("test.read", "1", "reads numbers from a file").outputs(vec![PortSpec::new(
+            "table",
+            ArtifactKind::Table,
+            "numbers",
+        )])
     }
     fn preflight(&self, p: &ReadParams, _: &InputMetas) -> Result<Preflight<Vec<f64>>, StageError> {
         let text = std::fs::read_to_string(&p.path)
@@ -409,7 +424,8 @@ fn a_stage_whose_run_contradicts_its_preflight_fails_with_an_internal_error() {
         .unwrap();
     assert!(
         e.message.contains("internal error in stage `test.scale`")
-            && e.message.contains("announced between 5 and 5 items but gave 4"),
+            && e.message
+                .contains("announced between 5 and 5 items but gave 4"),
         "{e}"
     );
 }
@@ -423,7 +439,15 @@ fn keys_of_a_flattened_group_are_accepted_and_typos_still_refused() {
     assert_eq!(info.params[0].default, serde_json::json!(4));
     assert_eq!(info.params[0].ty, "integer");
     assert_eq!(info.params[1].ty, "true or false");
-    let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {n: 2, fial: true}\n");
+    assert_eq!(info.params[1].default, serde_json::json!(false));
+    // The group's defaults can differ per stage, and the declaration shows this stage's.
+    use grainpipe_core::Params;
+    let noisy = NoisyParams::specs();
+    assert_eq!(noisy[0].name, "fail");
+    assert_eq!(noisy[0].default, serde_json::json!(true));
+    assert!(NoisyParams::default().noise.fail);
+    let d =
+        doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {n: 2, fial: true}\n");
     let e = plan(&d, &reg, &PlanOptions::default()).err().unwrap();
     assert!(e.message.contains("unknown parameter `fial`"), "{e}");
     assert_eq!(e.help.as_deref(), Some("did you mean `fail`?"));

@@ -43,10 +43,12 @@ fn parse_field_options(attrs: &[Attribute]) -> syn::Result<FieldOptions> {
             Ok(())
         })?;
     }
-    if o.flatten && (o.default.is_some() || o.ty.is_some() || o.unit.is_some() || o.reads_file) {
+    if o.flatten && (o.ty.is_some() || o.unit.is_some() || o.reads_file) {
         return Err(syn::Error::new_spanned(
             &attrs[0],
-            "a flattened parameter group takes its defaults and docs from its own declaration",
+            "a flattened parameter group takes its docs, types and units from its own \
+             declaration (only `default` may be given, to set the group's defaults for this \
+             stage)",
         ));
     }
     Ok(o)
@@ -105,7 +107,9 @@ fn serde_name(field: &syn::Field) -> syn::Result<String> {
 /// - `default`: the default value (else `Default::default()` of the field's type);
 /// - `ty` / `unit`: override the words and SI unit derived from the field's type;
 /// - `file`: the value names an input file or directory; the cache is keyed on its content;
-/// - `flatten`: the field is a parameter group (itself `#[params]`) whose keys join this one's.
+/// - `flatten`: the field is a parameter group (itself `#[params]`) whose keys join this one's;
+///   with `default = EXPR` (a value of the group's type) this stage gets its own defaults for
+///   the group's keys, and `pipe describe` shows them.
 ///
 /// The struct gets `Clone, Debug, Serialize, Deserialize` (do not derive them again),
 /// `#[serde(default)]`, a `Default` impl and `grainpipe_core::params::Params`.

@@ -9,8 +9,8 @@ use crate::volume::{from_bytes, to_le_bytes, Le, Probe, Volume, VolumeData, Volu
 use base64::Engine;
 use grainpipe_core::fsutil::atomic_write;
 use grainpipe_core::{
-    ComponentConvention,
-    Artifact, ArtifactKind, ContactGraph, FieldData, Packing, Phase, Provenance, Series,
+    Artifact, ArtifactKind, ComponentConvention, ContactGraph, FieldData, Packing, Phase,
+    Provenance, Series,
 };
 use std::collections::HashSet;
 use std::io::{Read, Write};
@@ -456,7 +456,11 @@ pub fn write_pvd(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
     let entries: Vec<(f64, usize, Option<&str>, &Artifact)> = match a {
         Artifact::Series(series) => {
             check_series(series)?;
-            series.frames.iter().map(|(t, f)| (*t, 0, None, f)).collect()
+            series
+                .frames
+                .iter()
+                .map(|(t, f)| (*t, 0, None, f))
+                .collect()
         }
         Artifact::Collection(c) => c
             .items
@@ -514,7 +518,9 @@ fn check_series(s: &Series) -> Result<(), String> {
 }
 
 /// All frames or items must be of one kind that VTK XML holds; returns their extension.
-fn pvd_extension<'a>(mut items: impl Iterator<Item = &'a Artifact>) -> Result<&'static str, String> {
+fn pvd_extension<'a>(
+    mut items: impl Iterator<Item = &'a Artifact>,
+) -> Result<&'static str, String> {
     let Some(first) = items.next() else {
         return Err("nothing to write: no frames or items".into());
     };

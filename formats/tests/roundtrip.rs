@@ -434,8 +434,14 @@ fn pvd_of_a_collection_names_its_parts_and_refuses_mixed_kinds() {
     };
     write_pvd(&Artifact::Collection(two), &p, &prov()).unwrap();
     let text = std::fs::read_to_string(&p).unwrap();
-    assert!(text.contains("part=\"0\" name=\"a\" file=\"grains_0000.vtp\""), "{text}");
-    assert!(text.contains("part=\"1\" name=\"b\" file=\"grains_0001.vtp\""), "{text}");
+    assert!(
+        text.contains("part=\"0\" name=\"a\" file=\"grains_0000.vtp\""),
+        "{text}"
+    );
+    assert!(
+        text.contains("part=\"1\" name=\"b\" file=\"grains_0001.vtp\""),
+        "{text}"
+    );
     assert!(d.path().join("grains_0001.vtp").is_file());
     let mixed = Collection {
         items: vec![
@@ -443,7 +449,12 @@ fn pvd_of_a_collection_names_its_parts_and_refuses_mixed_kinds() {
             ("b".into(), Artifact::Table(table())),
         ],
     };
-    let e = write_pvd(&Artifact::Collection(mixed), &d.path().join("m.pvd"), &prov()).unwrap_err();
+    let e = write_pvd(
+        &Artifact::Collection(mixed),
+        &d.path().join("m.pvd"),
+        &prov(),
+    )
+    .unwrap_err();
     assert!(e.contains("mixes Packing and Table"), "{e}");
 }
 
@@ -812,11 +823,13 @@ fn import_of_corrupt_hdf5_and_netcdf_names_the_file() {
                 dataset: var.into(),
                 ..Default::default()
             };
-            ImportHdf5.preflight(&hp, &InputMetas::new()).and_then(|pf| {
-                ImportHdf5
-                    .run(&hp, &pf.plan, &Inputs::new(), &ctx())
-                    .map(|_| unreachable!())
-            })
+            ImportHdf5
+                .preflight(&hp, &InputMetas::new())
+                .and_then(|pf| {
+                    ImportHdf5
+                        .run(&hp, &pf.plan, &Inputs::new(), &ctx())
+                        .map(|_| unreachable!())
+                })
         } else {
             let np = NetcdfParams {
                 path,

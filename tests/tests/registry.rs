@@ -21,7 +21,11 @@ fn every_builtin_stage_describes_itself_consistently() {
                 (Some("object"), v) => v.is_object(),
                 _ => true,
             };
-            assert!(ok, "{}.{}: default {} is not a {t:?}", info.id, p.name, p.default);
+            assert!(
+                ok,
+                "{}.{}: default {} is not a {t:?}",
+                info.id, p.name, p.default
+            );
         }
     }
 }

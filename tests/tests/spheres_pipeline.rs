@@ -54,3 +54,41 @@ fn results_do_not_depend_on_thread_count() {
     };
     assert_eq!(run(1), run(2));
 }
+
+#[test]
+fn preflight_knows_the_voxel_grid_before_anything_runs() {
+    // Equal spheres fix the mean diameter, so the grid at 20 voxels per diameter is known at
+    // preflight: 400 um / (50 um / 20) = 160 voxels per axis, periodic like the packing. The
+    // run is checked against this announcement by the engine.
+    let doc = grainpipe_core::pipeline::PipelineDoc::load(
+        &grainpipe_tests::repo_root().join("pipelines/spheres.yaml"),
+    )
+    .unwrap();
+    let plan = grainpipe_core::engine::plan(
+        &doc,
+        &grainpipe_cli::builtin_registry(),
+        &Default::default(),
+    )
+    .unwrap();
+    let (i, _) = doc.step("voxels").unwrap();
+    let grid = plan.steps[i].as_ref().unwrap().preflight.outputs["image"]
+        .grid
+        .clone()
+        .expect("grid announced");
+    assert_eq!(grid.dims, [160; 3]);
+    assert_eq!(grid.periodic, [true; 3]);
+    assert!((grid.spacing[0] - 2.5e-6).abs() < 1e-18);
+    // Polydisperse radii only estimate the diameter: no grid is promised then.
+    let mut poly = doc.clone();
+    poly.apply_override("pack.radius={kind: uniform, min: 20 um, max: 30 um}")
+        .unwrap();
+    let plan = grainpipe_core::engine::plan(
+        &poly,
+        &grainpipe_cli::builtin_registry(),
+        &Default::default(),
+    )
+    .unwrap();
+    assert!(plan.steps[i].as_ref().unwrap().preflight.outputs["image"]
+        .grid
+        .is_none());
+}

@@ -18,33 +18,29 @@ use std::f64::consts::PI;
 const MAX_SPHERES: f64 = 1e7;
 
 /// The defaults that differ between the brick stages (each follows one of the paper's
-/// examples). Implemented by the markers [`Method1Defaults`], [`Method2Defaults`] and
-/// [`CurvedDefaults`], which [`BrickParams`] carries as an empty flattened group.
-pub trait StageDefaults: Params + Copy {
-    const FACE_GOAL: f64;
-    const BODY_GOAL: f64;
-    const CONTACT_PARAMETER: f64;
-    const STD_LENGTH: f64;
-    const REQUIRE_GOALS: bool;
-    const MAX_CONSECUTIVE_REJECTIONS: u64;
-    const MAX_REJECTED_FRACTION: f64;
+/// examples).
+pub struct DefaultValues {
+    pub face_goal: f64,
+    pub body_goal: f64,
+    pub contact_parameter: f64,
+    pub std_length: f64,
+    pub require_goals: bool,
+    pub max_consecutive_rejections: u64,
+    pub max_rejected_fraction: f64,
 }
 
-macro_rules! stage_defaults {
-    ($($(#[$doc:meta])* $name:ident = [$fg:expr, $bg:expr, $cp:expr, $sl:expr, $rq:expr, $mr:expr, $mf:expr];)*) => {$(
+/// Selects a stage's [`DefaultValues`]. Implemented by the markers [`Method1Defaults`],
+/// [`Method2Defaults`] and [`CurvedDefaults`], which [`BrickParams`] carries as an empty
+/// flattened group.
+pub trait StageDefaults: Params + Copy {
+    const VALUES: DefaultValues;
+}
+
+macro_rules! defaults_marker {
+    ($($(#[$doc:meta])* $name:ident),* $(,)?) => {$(
         $(#[$doc])*
         #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
         pub struct $name {}
-
-        impl StageDefaults for $name {
-            const FACE_GOAL: f64 = $fg;
-            const BODY_GOAL: f64 = $bg;
-            const CONTACT_PARAMETER: f64 = $cp;
-            const STD_LENGTH: f64 = $sl;
-            const REQUIRE_GOALS: bool = $rq;
-            const MAX_CONSECUTIVE_REJECTIONS: u64 = $mr;
-            const MAX_REJECTED_FRACTION: f64 = $mf;
-        }
 
         /// Declares no parameter: it only selects defaults.
         impl Params for $name {
@@ -55,16 +51,52 @@ macro_rules! stage_defaults {
     )*};
 }
 
-// face_goal, body_goal, contact_parameter, std_length, require_goals,
-// max_consecutive_rejections, max_rejected_fraction
-stage_defaults! {
-    /// Defaults of `bricks.method1`: the paper's Example 1A.
-    Method1Defaults = [0.8, 0.55, 0.2, 15.0, true, 100, 1.0];
-    /// Defaults of `bricks.method2`: the paper's Example 2 goals with the Weibull law of
-    /// eq. (2.4), Table 3.
-    Method2Defaults = [1.0, 0.9, 0.1, 30.0, false, 30, 0.25];
-    /// Defaults of `bricks.curved`: the paper's Example 3A.
-    CurvedDefaults = [0.4, 0.4, 0.1, 30.0, true, 100, 1.0];
+defaults_marker! {
+    /// Defaults of `bricks.method1`.
+    Method1Defaults,
+    /// Defaults of `bricks.method2`.
+    Method2Defaults,
+    /// Defaults of `bricks.curved`.
+    CurvedDefaults,
+}
+
+/// The paper's Example 1A.
+impl StageDefaults for Method1Defaults {
+    const VALUES: DefaultValues = DefaultValues {
+        face_goal: 0.8,
+        body_goal: 0.55,
+        contact_parameter: 0.2,
+        std_length: 15.0,
+        require_goals: true,
+        max_consecutive_rejections: 100,
+        max_rejected_fraction: 1.0,
+    };
+}
+
+/// The paper's Example 2 goals with the Weibull law of eq. (2.4), Table 3.
+impl StageDefaults for Method2Defaults {
+    const VALUES: DefaultValues = DefaultValues {
+        face_goal: 1.0,
+        body_goal: 0.9,
+        contact_parameter: 0.1,
+        std_length: 30.0,
+        require_goals: false,
+        max_consecutive_rejections: 30,
+        max_rejected_fraction: 0.25,
+    };
+}
+
+/// The paper's Example 3A.
+impl StageDefaults for CurvedDefaults {
+    const VALUES: DefaultValues = DefaultValues {
+        face_goal: 0.4,
+        body_goal: 0.4,
+        contact_parameter: 0.1,
+        std_length: 30.0,
+        require_goals: true,
+        max_consecutive_rejections: 100,
+        max_rejected_fraction: 1.0,
+    };
 }
 
 /// The parameters every brick stage shares, flattened into each stage's parameters; `D`
@@ -74,13 +106,13 @@ pub struct BrickParams<D: StageDefaults> {
     /// Sphere radius law (Matlab makedist equivalent); default Weibull scale 15.7 um, shape 3.55 (eq. 2.4).
     pub radius: SizeDistribution,
     /// FaceGoal: fraction of each filled face covered by the projections of the spheres on it.
-    #[param(default = D::FACE_GOAL, ty = "number in (0, 1]")]
+    #[param(default = D::VALUES.face_goal, ty = "number in (0, 1]")]
     pub face_goal: f64,
     /// BodyGoal: fraction of the unit-brick (domain) volume filled by spheres.
-    #[param(default = D::BODY_GOAL, ty = "number in (0, 1]")]
+    #[param(default = D::VALUES.body_goal, ty = "number in (0, 1]")]
     pub body_goal: f64,
     /// SphereContactParameter: spheres (and faces) with gaps up to this times the mean radius are in contact.
-    #[param(default = D::CONTACT_PARAMETER, ty = "number in [0, 1]")]
+    #[param(default = D::VALUES.contact_parameter, ty = "number in [0, 1]")]
     pub contact_parameter: f64,
     /// ParentParameter: spheres with gaps up to this times the mean radius are parents of new spheres.
     #[param(default = 0.5, ty = "number in (0, 1]")]
@@ -89,16 +121,16 @@ pub struct BrickParams<D: StageDefaults> {
     #[param(default = [1.0, 1.0, 1.0])]
     pub brick_sides: [f64; 3],
     /// Reference length in mean radii (paper: 15 or 30 r_mean).
-    #[param(default = D::STD_LENGTH)]
+    #[param(default = D::VALUES.std_length)]
     pub std_length: f64,
     /// Fail when a face or the volume saturates below its goal (false: warn and keep the saturated fill).
-    #[param(default = D::REQUIRE_GOALS)]
+    #[param(default = D::VALUES.require_goals)]
     pub require_goals: bool,
     /// A phase is saturated after this many rejected radius draws in a row.
-    #[param(default = D::MAX_CONSECUTIVE_REJECTIONS)]
+    #[param(default = D::VALUES.max_consecutive_rejections)]
     pub max_consecutive_rejections: u64,
     /// A phase is saturated once this fraction of its draws (after 100) was rejected; bounds the radius-law distortion (KS <= q/(1-q)). 1 = off.
-    #[param(default = D::MAX_REJECTED_FRACTION, ty = "number in (0, 1]")]
+    #[param(default = D::VALUES.max_rejected_fraction, ty = "number in (0, 1]")]
     pub max_rejected_fraction: f64,
     /// Selects the defaults above; declares no parameter. (`bound = ""`: serde takes the
     /// bounds on `D` from `StageDefaults` instead of adding its own.)

@@ -1,8 +1,8 @@
 //! `packing.rsa`: random sequential addition of non-overlapping spheres in a box.
 
 use grainpipe_core::distributions::SizeDistribution;
-use grainpipe_core::units::{Length, Q};
 use grainpipe_core::spatial::CellList;
+use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     params, ArtifactKind, ArtifactMeta, Body, BodyShape, Domain, InputMetas, Inputs, Outputs,
     Packing, PortSpec, Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
@@ -156,9 +156,12 @@ impl TypedStage for Rsa {
                 "about {count:.0} spheres: more than the 50 million this stage handles; shrink the box"
             )));
         }
-        let packing = ArtifactMeta::packing([0.0; 3], size, p.periodic)
-            .with_count(count as u64, None)
-            .with_length_scale(2.0 * p.radius.mean());
+        let packing =
+            ArtifactMeta::packing([0.0; 3], size, p.periodic).with_count(count as u64, None);
+        let packing = match p.radius {
+            SizeDistribution::Fixed { value } => packing.with_mean_diameter(2.0 * value.si()),
+            _ => packing.with_length_scale(2.0 * p.radius.mean()),
+        };
         let report = ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1]));
         Ok(Preflight::from_info(&self.info(), (count as u64) * 200)
             .announce("packing", packing)

@@ -1,11 +1,11 @@
 //! `voxelize.packing`: spheres and clumps -> a phase image, with sub-voxel supersampling.
 
-use grainpipe_core::units::{Length, Q};
 use grainpipe_core::spatial::CellList;
+use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
-    input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs,
-    Packing, Phase, PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table,
-    TypedStage, WorldSphere,
+    input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, Phase,
+    PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
+    WorldSphere,
 };
 use rayon::prelude::*;
 
@@ -52,20 +52,10 @@ fn voxel_size(p: &VoxelizeParams, mean_diameter: f64) -> f64 {
     }
 }
 
-/// Mean volume-equivalent diameter of the bodies.
-fn mean_diameter(packing: &Packing) -> f64 {
-    let n = packing.bodies.len().max(1) as f64;
-    packing
-        .bodies
-        .iter()
-        .map(|b| (6.0 * packing.body_volume(b) / std::f64::consts::PI).cbrt())
-        .sum::<f64>()
-        / n
-}
-
 impl TypedStage for Voxelize {
     type Params = VoxelizeParams;
-    type Plan = ();
+    /// The voxel size, when preflight could fix it.
+    type Plan = Option<f64>;
 
     fn info(&self) -> StageInfo {
         StageInfo::new(
@@ -94,7 +84,11 @@ impl TypedStage for Voxelize {
         ])
     }
 
-    fn preflight(&self, p: &VoxelizeParams, inputs: &InputMetas) -> Result<Preflight, StageError> {
+    fn preflight(
+        &self,
+        p: &VoxelizeParams,
+        inputs: &InputMetas,
+    ) -> Result<Preflight<Option<f64>>, StageError> {
         if p.voxel_size.si() < 0.0 || !p.voxel_size.si().is_finite() {
             return Err(StageError::param(
                 "voxel_size",
@@ -118,8 +112,9 @@ impl TypedStage for Voxelize {
         let meta = inputs.get("packing");
         let mut out = ArtifactMeta::of(ArtifactKind::PhaseImage);
         let mut memory = 0;
+        let mut voxel = None;
         if let Some((lo, hi)) = meta.and_then(|m| m.domain_box) {
-            let scale = meta.and_then(|m| m.length_scale);
+            let scale = meta.and_then(|m| m.mean_diameter.or(m.length_scale));
             if p.voxel_size.si() > 0.0 || scale.is_some() {
                 let v = voxel_size(p, scale.unwrap_or(0.0));
                 let n: f64 = (0..3)
@@ -132,15 +127,17 @@ impl TypedStage for Voxelize {
                     ));
                 }
                 memory = n as u64;
-                // The grid is exact only for an explicit voxel size (the run measures the
-                // mean diameter, which the packing's announced length scale only estimates)
-                // and known periodicity.
+                // The grid is known when the voxel size is: given, or derived from a mean
+                // diameter the packing fixes exactly (a length scale is only an estimate of the
+                // diameter the run measures). The run then uses this voxel size.
+                let exact = p.voxel_size.si() > 0.0 || meta.and_then(|m| m.mean_diameter).is_some();
                 match meta.and_then(|m| m.periodic) {
-                    Some(periodic) if p.voxel_size.si() > 0.0 => {
+                    Some(periodic) if exact => {
                         out = ArtifactMeta::on_grid(
                             ArtifactKind::PhaseImage,
                             grid_for(lo, hi, periodic, v),
                         );
+                        voxel = Some(v);
                     }
                     _ => out.count_estimate = n as u64,
                 }
@@ -151,13 +148,14 @@ impl TypedStage for Voxelize {
             .announce(
                 "report",
                 ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
-            ))
+            )
+            .with_plan(voxel))
     }
 
     fn run(
         &self,
         p: &VoxelizeParams,
-        _plan: &(),
+        planned_voxel: &Option<f64>,
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
@@ -166,7 +164,7 @@ impl TypedStage for Voxelize {
             return Err(StageError::input("packing", "the packing has no bodies"));
         }
         let d = &packing.domain;
-        let v = voxel_size(p, mean_diameter(packing));
+        let v = planned_voxel.unwrap_or_else(|| voxel_size(p, packing.mean_diameter()));
         let n: f64 = (0..3)
             .map(|a| ((d.max[a] - d.min[a]) / v).round().max(1.0))
             .product();

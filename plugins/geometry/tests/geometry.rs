@@ -22,7 +22,7 @@ fn voxelize(packing: &Packing, p: &VoxelizeParams) -> (grainpipe_core::PhaseImag
         "packing".into(),
         Arc::new(Artifact::Packing(packing.clone())),
     );
-    let out = Voxelize.run(p, &(), &inputs, &ctx).unwrap();
+    let out = Voxelize.run(p, &None, &inputs, &ctx).unwrap();
     let cov = out["report"]
         .as_table()
         .unwrap()

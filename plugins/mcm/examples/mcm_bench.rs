@@ -16,8 +16,7 @@
 
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{
-    Artifact, ArtifactKind, ArtifactMeta, ClumpLibrary, InputMetas, Inputs, RunContext,
-    TypedStage,
+    Artifact, ArtifactKind, ArtifactMeta, ClumpLibrary, InputMetas, Inputs, RunContext, TypedStage,
 };
 use grainpipe_mcm::stages::{Stacked, StackedParams};
 use serde_json::json;
@@ -114,7 +113,10 @@ fn main() {
                     "library".into(),
                     Arc::new(Artifact::ClumpLibrary(l.clone())),
                 );
-                metas.insert("library".into(), ArtifactMeta::of(ArtifactKind::ClumpLibrary));
+                metas.insert(
+                    "library".into(),
+                    ArtifactMeta::of(ArtifactKind::ClumpLibrary),
+                );
             }
             let t0 = Instant::now();
             let r = Stacked.preflight(&p, &metas).and_then(|pf| {

@@ -292,8 +292,7 @@ impl System {
                     // Remark 3: only spheres inside the other's bounding sphere.
                     let near_j: Vec<u32> = (0..sj.radii.len())
                         .filter(|&b| {
-                            (cj + world[j][b] - pi).norm()
-                                < sj.radii[b] + si.bound + reach_gap
+                            (cj + world[j][b] - pi).norm() < sj.radii[b] + si.bound + reach_gap
                         })
                         .map(|b| b as u32)
                         .collect();
@@ -305,9 +304,7 @@ impl System {
                         }
                         for &b in &near_j {
                             let pb = cj + world[j][b as usize];
-                            if (pa - pb).norm()
-                                < si.radii[a] + sj.radii[b as usize] + reach_gap
-                            {
+                            if (pa - pb).norm() < si.radii[a] + sj.radii[b as usize] + reach_gap {
                                 pairs.push((a as u32, b));
                             }
                         }
@@ -611,7 +608,8 @@ impl System {
             }
             let gj = &self.grains[j];
             let sj = &self.shapes[gj.shape];
-            let d = V3::from([0, 1, 2].map(|a| min_image(gi.pos[a] - gj.pos[a], self.cell[a], true)));
+            let d =
+                V3::from([0, 1, 2].map(|a| min_image(gi.pos[a] - gj.pos[a], self.cell[a], true)));
             let mut wj: Option<Vec<V3>> = None;
             for k in 0..27 {
                 let img = V3::new(

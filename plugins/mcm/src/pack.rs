@@ -4,8 +4,8 @@
 
 use crate::engine::{Grain, Minimised, Shape, System, Worst};
 use grainpipe_core::distributions::SizeDistribution;
-use grainpipe_core::ClumpLibrary;
 use grainpipe_core::spatial::{min_image, random_quaternion};
+use grainpipe_core::ClumpLibrary;
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
@@ -296,7 +296,9 @@ fn shake(sys: &mut System, rng: &mut ChaCha8Rng, amp: f64, around: Option<usize>
             continue;
         }
         if let Some(c) = centre {
-            let d = Vector3::from([0, 1, 2].map(|a| min_image(sys.grains[i].pos[a] - c[a], cell[a], true)));
+            let d = Vector3::from(
+                [0, 1, 2].map(|a| min_image(sys.grains[i].pos[a] - c[a], cell[a], true)),
+            );
             if d.norm() > SHAKE_REACH * bmax {
                 continue;
             }

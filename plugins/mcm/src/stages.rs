@@ -5,8 +5,8 @@ use crate::pack::{
     contract, mean_sphere_volume, place, quat, sphere_volume, sphere_volume_range, uniform, v3,
     FailReason, Mode, Pick, RunFailure, RunStats, Schedule, Source, PLACE_ATTEMPTS,
 };
-use grainpipe_core::spatial::random_quaternion;
 use grainpipe_core::distributions::SizeDistribution;
+use grainpipe_core::spatial::random_quaternion;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, Body, BodyShape, ClumpLibrary, Domain,
@@ -502,7 +502,7 @@ impl GrainSizes {
         }
         let lo = (target / vmax * (1.0 - 1e-6)).floor().max(1.0);
         let hi = (target / vmin * (1.0 + 1e-6)).ceil() + 1.0;
-        (hi <= 1e9).then(|| [lo as u64, hi as u64])
+        (hi <= 1e9).then_some([lo as u64, hi as u64])
     }
 
     fn with_scale(&self, meta: ArtifactMeta) -> ArtifactMeta {

@@ -3,7 +3,7 @@
 
 use crate::params::{Integrator, LaserParams, PathKind, TopSurface};
 use crate::path::LaserPath;
-use crate::thermal::{plan_view, Beam, Bed, Material, Multirate};
+use crate::thermal::{plan_view, Beam, Bed, Material, Multirate, StepStats};
 use grainpipe_core::model::{
     Artifact, ArtifactKind, ArtifactMeta, BodyAttribute, BodyShape, ContactGraph, Packing, Series,
     Table,
@@ -375,22 +375,37 @@ fn simulate_in_pool(
     let absorbers = select_absorbers(p, &pos, &radius, contacts)?;
     let path = build_path(p, csv, packing);
     let grid = plan_view(&absorbers, &pos, beam.reach());
-    let mut bed = Bed::new(pos, radius, &volume, pairs, bonded0, mat, t0);
+    let bed = Bed::new(pos, radius, &volume, pairs, bonded0, mat, t0);
 
     let t_end = path.duration() + p.cooldown.si();
     let beam_dt = beam.radius / (5.0 * p.scan_speed.si());
     let user_dt = p.dt.map(|d| d.si());
     let explicit = p.integrator == Integrator::Explicit;
-    let mut limit = bed.stability_limit();
     let macro_dt = |limit: f64| match (user_dt, explicit) {
         (Some(d), _) => d,
         (None, true) => (p.dt_safety * limit).min(beam_dt),
         (None, false) => beam_dt,
     };
 
-    let mut qlas = vec![0.0; n];
-    let mut touched: Vec<usize> = Vec::new();
-    let mut samples = Vec::new();
+    let mut s = Stepper {
+        limit: bed.stability_limit(),
+        qlas: vec![0.0; n],
+        bed,
+        path: &path,
+        grid: &grid,
+        beam: &beam,
+        explicit,
+        t_end,
+        max_steps: p.max_steps,
+        t: 0.0,
+        steps: 0,
+        laser_in: 0.0,
+        convected: 0.0,
+        last: Last::default(),
+        touched: Vec::new(),
+        samples: Vec::new(),
+        changed: Vec::new(),
+    };
     let mut hist = History::default();
     let mut snapshots = Series { frames: Vec::new() };
     let snap_every = p.snapshot_interval.si();
@@ -401,101 +416,60 @@ fn simulate_in_pool(
         f64::INFINITY
     };
     let mut next_hist = hist_every;
-    let mut t = 0.0;
-    let mut steps: u64 = 0;
-    let mut laser_in = 0.0;
-    let mut convected = 0.0;
-    let mut last = Last::default();
-    snapshots.frames.push((0.0, frame(packing, &bed.t)));
-    hist.push(&bed, t, 0, laser_in, convected, &last, limit);
+    snapshots.frames.push((0.0, frame(packing, &s.bed.t)));
+    hist.push(&s);
     // Relative time tolerance for "reached" tests against accumulated float time.
     let eps = 1e-12 * t_end.max(1e-300);
     let mut reported = 0u64;
 
     let use_mr = explicit && p.multirate && p.substep;
     let mut plan: Option<Multirate> = None;
-    let mut changed_particles: Vec<usize> = Vec::new();
-    while t < t_end - eps {
+    while s.t < t_end - eps {
         if use_mr && plan.is_none() {
-            plan = Some(bed.plan(beam_dt, p.dt_safety, user_dt));
+            plan = Some(s.bed.plan(beam_dt, p.dt_safety, user_dt));
         }
         let base = match &plan {
             Some(pl) => pl.dt,
-            None => macro_dt(limit),
+            None => macro_dt(s.limit),
         };
-        let mut h = base.min(t_end - t);
-        if next_snap - t > eps {
-            h = h.min(next_snap - t);
+        let mut h = base.min(t_end - s.t);
+        if next_snap - s.t > eps {
+            h = h.min(next_snap - s.t);
         }
-        last.substeps = 0;
-        last.stiff = 0;
+        s.last.substeps = 0;
+        s.last.stiff = 0;
         let mr = plan
             .as_ref()
             .filter(|pl| !pl.stiff.is_empty() && 2 * pl.stiff.len() <= n);
         if let Some(pl) = mr {
-            let q_sum = deposit(
-                &path,
-                &grid,
-                &beam,
-                &bed.pos,
-                &bed.radius,
-                t,
-                t + h,
-                &mut qlas,
-                &mut touched,
-                &mut samples,
-            );
-            let (st, ns) = bed.explicit_step_multirate(h, &qlas, pl, p.dt_safety);
-            clear(&mut qlas, &mut touched);
-            laser_in += h * q_sum;
-            convected += st.convected;
-            t += h;
-            steps += 1;
-            last.substeps = ns;
-            last.stiff = pl.stiff.len();
-            last.dt = h;
-            last.stats = st;
-            changed_particles.clear();
-            let (_, changed) = bed.form_bonds(t, &mut changed_particles);
-            if changed {
-                limit = bed.stability_limit();
-                if let Some(pl) = plan.as_mut() {
-                    bed.update_plan(pl, &changed_particles);
-                    if 2 * pl.stiff.len() > n {
-                        // Too many to sub-cycle sequentially: choose a new global step.
-                        plan = None;
-                    }
-                }
-            }
-            if !st.max_t.is_finite() {
-                return Err(StageError::failed(format!(
-                    "temperature became non-finite at t = {t:.6e} s after {steps} steps \
-                     (dt {h:.3e} s, {} sub-cycled particles)",
-                    last.stiff
-                )));
-            }
-            if steps >= p.max_steps {
-                return Err(StageError::failed(format!(
-                    "reached max_steps = {} at t = {t:.6e} s of {t_end:.6e} s (dt {h:.3e} s)",
-                    p.max_steps
-                )));
-            }
+            let stiff = pl.stiff.len();
+            let mut ns = 0;
+            let st = s.advance(h, |bed, q| {
+                let (st, k) = bed.explicit_step_multirate(h, q, pl, p.dt_safety);
+                ns = k;
+                Ok(st)
+            })?;
+            s.last.substeps = ns;
+            s.last.stiff = stiff;
+            s.bond(&mut plan);
+            s.check(&st, Scheme::Multirate)?;
         } else if explicit {
             let mut remaining = h;
             // A step up to the limit is taken as given (automatic steps are dt_safety x
             // limit). Above it: refuse a user dt, or split into equal stable sub-steps,
             // re-planned when bonding changes the limit.
-            let single = h <= limit * (1.0 + 1e-12);
+            let single = h <= s.limit * (1.0 + 1e-12);
             if !single && !p.substep && user_dt.is_some() {
                 return Err(StageError::param(
                     "dt",
                     format!(
                         "dt = {:.6e} s exceeds the explicit stability limit {:.6e} s (min over \
-                         particles of m_i C_p / (sum_j k_ij + k_b)) at t = {t:.6e} s; use dt \
+                         particles of m_i C_p / (sum_j k_ij + k_b)) at t = {:.6e} s; use dt \
                          <= {:.6e} s, substep: true or integrator: implicit",
                         user_dt.unwrap_or(h),
-                        limit,
-                        limit
+                        s.limit,
+                        s.t,
+                        s.limit
                     ),
                 ));
             }
@@ -505,7 +479,7 @@ fn simulate_in_pool(
                     remaining
                 } else {
                     if sub_len == 0.0 {
-                        sub_len = remaining / (remaining / (p.dt_safety * limit)).ceil();
+                        sub_len = remaining / (remaining / (p.dt_safety * s.limit)).ceil();
                     }
                     if remaining < 1.5 * sub_len {
                         remaining
@@ -513,91 +487,28 @@ fn simulate_in_pool(
                         sub_len
                     }
                 };
-                let q_sum = deposit(
-                    &path,
-                    &grid,
-                    &beam,
-                    &bed.pos,
-                    &bed.radius,
-                    t,
-                    t + sub,
-                    &mut qlas,
-                    &mut touched,
-                    &mut samples,
-                );
-                let st = bed.explicit_step(sub, &qlas);
-                clear(&mut qlas, &mut touched);
-                laser_in += sub * q_sum;
-                convected += st.convected;
-                t += sub;
+                let st = s.advance(sub, |bed, q| Ok(bed.explicit_step(sub, q)))?;
                 remaining -= sub;
-                steps += 1;
-                last.substeps += 1;
-                last.dt = sub;
-                last.stats = st;
-                changed_particles.clear();
-                let (_, changed) = bed.form_bonds(t, &mut changed_particles);
-                if changed {
-                    limit = bed.stability_limit();
+                s.last.substeps += 1;
+                if s.bond(&mut plan) {
                     sub_len = 0.0;
-                    if let Some(pl) = plan.as_mut() {
-                        bed.update_plan(pl, &changed_particles);
-                        if 2 * pl.stiff.len() > n {
-                            plan = None;
-                        }
-                    }
                 }
-                if !st.max_t.is_finite() {
-                    return Err(StageError::failed(format!(
-                        "temperature became non-finite at t = {t:.6e} s after {steps} steps \
-                         (dt {sub:.3e} s, stability limit {limit:.3e} s)"
-                    )));
-                }
-                if steps >= p.max_steps {
-                    return Err(StageError::failed(format!(
-                        "reached max_steps = {} at t = {t:.6e} s of {t_end:.6e} s (dt \
-                         {sub:.3e} s, stability limit {limit:.3e} s); raise max_steps or use \
-                         integrator: implicit",
-                        p.max_steps
-                    )));
-                }
+                s.check(&st, Scheme::Explicit)?;
             }
         } else {
-            let q_sum = deposit(
-                &path,
-                &grid,
-                &beam,
-                &bed.pos,
-                &bed.radius,
-                t,
-                t + h,
-                &mut qlas,
-                &mut touched,
-                &mut samples,
-            );
-            let st = bed
-                .implicit_step(h, &qlas, p.cg_tolerance)
-                .map_err(|e| StageError::failed(format!("at t = {t:.6e} s: {e}")))?;
-            clear(&mut qlas, &mut touched);
-            laser_in += h * q_sum;
-            convected += st.convected;
-            t += h;
-            steps += 1;
-            last.substeps = 1;
-            last.dt = h;
-            last.stats = st;
-            bed.form_bonds(t, &mut changed_particles);
-            changed_particles.clear();
-            if steps >= p.max_steps {
-                return Err(StageError::failed(format!(
-                    "reached max_steps = {} at t = {t:.6e} s of {t_end:.6e} s (dt {h:.3e} s)",
-                    p.max_steps
-                )));
-            }
+            let t = s.t;
+            let st = s.advance(h, |bed, q| {
+                bed.implicit_step(h, q, p.cg_tolerance)
+                    .map_err(|e| StageError::failed(format!("at t = {t:.6e} s: {e}")))
+            })?;
+            s.last.substeps = 1;
+            s.bond(&mut plan);
+            s.check(&st, Scheme::Implicit)?;
         }
+        let t = s.t;
         let done = t >= t_end - eps;
         if done || t >= next_hist - eps || hist_every == 0.0 {
-            hist.push(&bed, t, steps, laser_in, convected, &last, limit);
+            hist.push(&s);
             while next_hist <= t + eps {
                 next_hist += hist_every.max(f64::MIN_POSITIVE);
                 if hist_every == 0.0 {
@@ -606,12 +517,12 @@ fn simulate_in_pool(
             }
         }
         if t >= next_snap - eps {
-            snapshots.frames.push((t, frame(packing, &bed.t)));
+            snapshots.frames.push((t, frame(packing, &s.bed.t)));
             while next_snap <= t + eps {
                 next_snap += snap_every;
             }
         } else if done && snapshots.frames.last().map(|f| f.0) != Some(t) {
-            snapshots.frames.push((t, frame(packing, &bed.t)));
+            snapshots.frames.push((t, frame(packing, &s.bed.t)));
         }
         let permille = (t / t_end * 1000.0) as u64;
         if permille > reported {
@@ -620,6 +531,14 @@ fn simulate_in_pool(
         }
     }
 
+    let Stepper {
+        bed,
+        t,
+        steps,
+        laser_in,
+        convected,
+        ..
+    } = s;
     let mut out = packing.clone();
     let attr = |unit: &str, values: Vec<f64>| BodyAttribute {
         unit: unit.into(),
@@ -668,6 +587,124 @@ fn simulate_in_pool(
         steps,
         absorbers,
     })
+}
+
+/// How a step was integrated, for the messages of [`Stepper::check`].
+#[derive(Clone, Copy, PartialEq)]
+enum Scheme {
+    /// Explicit, stiff particles sub-cycled inside the global step.
+    Multirate,
+    /// Explicit (sub-)step of the whole bed.
+    Explicit,
+    /// Backward Euler.
+    Implicit,
+}
+
+/// The time loop's state that every integrator advances the same way: the bed, the clock,
+/// the energy bookkeeping, the laser deposition and bonding.
+struct Stepper<'a> {
+    bed: Bed,
+    path: &'a LaserPath,
+    grid: &'a CellList,
+    beam: &'a Beam,
+    /// Whether the integrator is explicit (the stability limit then follows bonding).
+    explicit: bool,
+    t_end: f64,
+    max_steps: u64,
+    t: f64,
+    steps: u64,
+    /// Laser energy put in and energy convected out so far [J].
+    laser_in: f64,
+    convected: f64,
+    /// Explicit stability limit of the current conductances [s].
+    limit: f64,
+    last: Last,
+    // Scratch: laser power per particle over a step, particles it touched, spot samples,
+    // particles whose conductance changed.
+    qlas: Vec<f64>,
+    touched: Vec<usize>,
+    samples: Vec<([f64; 2], f64)>,
+    changed: Vec<usize>,
+}
+
+impl Stepper<'_> {
+    /// Advances by `dt` with `step` (an integrator step given the mean laser power per
+    /// particle over it): deposits the laser power, books the energy and counts the step.
+    fn advance(
+        &mut self,
+        dt: f64,
+        step: impl FnOnce(&mut Bed, &[f64]) -> Result<StepStats, StageError>,
+    ) -> Result<StepStats, StageError> {
+        let q_sum = deposit(
+            self.path,
+            self.grid,
+            self.beam,
+            &self.bed.pos,
+            &self.bed.radius,
+            self.t,
+            self.t + dt,
+            &mut self.qlas,
+            &mut self.touched,
+            &mut self.samples,
+        );
+        let st = step(&mut self.bed, &self.qlas)?;
+        clear(&mut self.qlas, &mut self.touched);
+        self.laser_in += dt * q_sum;
+        self.convected += st.convected;
+        self.t += dt;
+        self.steps += 1;
+        self.last.dt = dt;
+        self.last.stats = st;
+        Ok(st)
+    }
+
+    /// Bonds the hot contacts. When conductances changed under an explicit integrator, the
+    /// stability limit is recomputed and the multirate plan kept valid (dropped when too many
+    /// particles would be sub-cycled sequentially, so a new global step is chosen). Returns
+    /// whether conductances changed.
+    fn bond(&mut self, plan: &mut Option<Multirate>) -> bool {
+        self.changed.clear();
+        let (_, changed) = self.bed.form_bonds(self.t, &mut self.changed);
+        if changed && self.explicit {
+            self.limit = self.bed.stability_limit();
+            if let Some(pl) = plan.as_mut() {
+                self.bed.update_plan(pl, &self.changed);
+                if 2 * pl.stiff.len() > self.bed.n {
+                    *plan = None;
+                }
+            }
+        }
+        changed
+    }
+
+    /// Fails when the temperature became non-finite (explicit) or the step limit is reached.
+    fn check(&self, st: &StepStats, scheme: Scheme) -> Result<(), StageError> {
+        let (t, dt, steps) = (self.t, self.last.dt, self.steps);
+        if scheme != Scheme::Implicit && !st.max_t.is_finite() {
+            let detail = match scheme {
+                Scheme::Multirate => format!("{} sub-cycled particles", self.last.stiff),
+                _ => format!("stability limit {:.3e} s", self.limit),
+            };
+            return Err(StageError::failed(format!(
+                "temperature became non-finite at t = {t:.6e} s after {steps} steps (dt \
+                 {dt:.3e} s, {detail})"
+            )));
+        }
+        if steps >= self.max_steps {
+            let detail = match scheme {
+                Scheme::Explicit => format!(
+                    ", stability limit {:.3e} s); raise max_steps or use integrator: implicit",
+                    self.limit
+                ),
+                _ => ")".to_string(),
+            };
+            return Err(StageError::failed(format!(
+                "reached max_steps = {} at t = {t:.6e} s of {:.6e} s (dt {dt:.3e} s{detail}",
+                self.max_steps, self.t_end
+            )));
+        }
+        Ok(())
+    }
 }
 
 /// Accumulates the mean laser power per particle over [a, b] into `qlas` (indices listed
@@ -733,7 +770,7 @@ struct Last {
     dt: f64,
     substeps: u64,
     stiff: usize,
-    stats: crate::thermal::StepStats,
+    stats: StepStats,
 }
 
 #[derive(Default)]
@@ -757,17 +794,9 @@ struct History {
 }
 
 impl History {
-    #[allow(clippy::too_many_arguments)]
-    fn push(
-        &mut self,
-        bed: &Bed,
-        t: f64,
-        steps: u64,
-        laser: f64,
-        convected: f64,
-        last: &Last,
-        limit: f64,
-    ) {
+    fn push(&mut self, s: &Stepper) {
+        let (bed, t, steps, last) = (&s.bed, s.t, s.steps, &s.last);
+        let (laser, convected, limit) = (s.laser_in, s.convected, s.limit);
         let nb = bed.bond_count();
         let stored = bed.stored();
         let n = bed.n as f64;

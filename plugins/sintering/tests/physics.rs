@@ -849,3 +849,43 @@ fn stage_contract_units_and_ports() {
     };
     assert!(grainpipe_sintering::stage::validate(&bad).is_err());
 }
+
+#[test]
+fn powderbed_pipeline_runs_through_the_engine() {
+    // pipelines/powderbed.yaml without its exports (their formats live in other crates): the
+    // engine plans the Method 2 bed and the print, and holds every output to what the
+    // preflights announced (the sintered packing keeps the bed's box and body count, the
+    // bond graph its contacts, the snapshot count follows from the path duration).
+    let root = grainpipe_core::testing::workspace_root(env!("CARGO_MANIFEST_DIR"));
+    let mut doc =
+        grainpipe_core::pipeline::PipelineDoc::load(&root.join("pipelines/powderbed.yaml"))
+            .unwrap();
+    doc.exports.clear();
+    let mut reg = Registry::new();
+    grainpipe_bricks::register(&mut reg);
+    grainpipe_sintering::register(&mut reg);
+    let r = grainpipe_core::engine::run_quietly(&doc, &reg).unwrap();
+    let bed = r.artifact("bed.packing").as_packing().unwrap();
+    let sintered = r.artifact("sinter.packing").as_packing().unwrap();
+    assert_eq!(sintered.bodies, bed.bodies);
+    let bonds = r.artifact("sinter.bonds").as_contact_graph().unwrap();
+    assert!(!bonds.bonds.is_empty(), "the print forms bonds");
+    // 2.5 ms of scanning and 1 ms of cooldown, a snapshot every 250 us: 15 frames.
+    assert_eq!(
+        r.artifact("sinter.snapshots")
+            .as_series()
+            .unwrap()
+            .frames
+            .len(),
+        15
+    );
+    let laser = *r.column("sinter.history", "laser_energy").last().unwrap();
+    let resid = *r
+        .column("sinter.history", "energy_residual")
+        .last()
+        .unwrap();
+    assert!(
+        resid.abs() < 1e-10 * laser,
+        "residual {resid:e} of {laser:e}"
+    );
+}

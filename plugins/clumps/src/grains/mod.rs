@@ -295,7 +295,10 @@ pub fn stats_tables(grains: &[GrainMask]) -> (Table, Table) {
 fn grain_outputs(grains: &[GrainMask]) -> Outputs {
     let (t, s) = stats_tables(grains);
     let mut out = Outputs::new();
-    out.insert("grains".into(), Artifact::Collection(grains_to_collection(grains)));
+    out.insert(
+        "grains".into(),
+        Artifact::Collection(grains_to_collection(grains)),
+    );
     out.insert("stats".into(), Artifact::Table(t));
     out.insert("summary".into(), Artifact::Table(s));
     out

@@ -4,8 +4,8 @@
 
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{
-    Artifact, Clump, ClumpLibrary, ClumpSphere, InputMetas, Inputs, Outputs, Packing,
-    RunContext, StageError, TypedStage,
+    Artifact, Clump, ClumpLibrary, ClumpSphere, InputMetas, Inputs, Outputs, Packing, RunContext,
+    StageError, TypedStage,
 };
 use std::f64::consts::PI;
 use std::sync::Arc;
@@ -30,7 +30,12 @@ pub fn run<S: TypedStage>(
         );
     }
     let pf = stage.preflight(&p, &metas)?;
-    let out = stage.run(&p, &pf.plan, &inputs, &RunContext::new(seed, &SilentReporter))?;
+    let out = stage.run(
+        &p,
+        &pf.plan,
+        &inputs,
+        &RunContext::new(seed, &SilentReporter),
+    )?;
     for (port, meta) in &pf.outputs {
         meta.check(&out[port.as_str()])
             .unwrap_or_else(|e| panic!("output `{port}` contradicts its preflight: {e}"));
