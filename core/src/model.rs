@@ -466,10 +466,43 @@ pub struct ContactGraph {
     pub contacts: Vec<Contact>,
     /// Bodies on each face, in [`FACE_NAMES`] order (the paper's ListXmin .. ListZmax).
     pub faces: [Vec<usize>; 6],
-    /// Bonded pairs (i < j), e.g. sinter necks or cement bridges.
+    /// Bonded pairs (i < j), e.g. sinter necks, cement bridges, peridynamic bonds.
     pub bonds: Vec<[usize; 2]>,
+    /// Named per-bond values, each with one value per entry of `bonds` (neck radius, stretch,
+    /// damage, ...).
+    pub bond_attributes: IndexMap<String, BodyAttribute>,
     /// Body positions, so the graph can be drawn on its own (lines between centres).
     pub positions: Vec<[f64; 3]>,
+}
+
+impl ContactGraph {
+    /// Checks that pairs refer to known positions and every bond attribute has one value per
+    /// bond (a malformed graph must not produce a file that opens with garbage).
+    pub fn validate(&self) -> Result<(), String> {
+        let n = self.positions.len();
+        let pairs = self
+            .contacts
+            .iter()
+            .map(|c| [c.i, c.j])
+            .chain(self.bonds.iter().copied());
+        for [i, j] in pairs {
+            if i >= n || j >= n {
+                return Err(format!(
+                    "contact graph pair ({i}, {j}) refers past its {n} positions"
+                ));
+            }
+        }
+        for (name, a) in &self.bond_attributes {
+            if a.values.len() != self.bonds.len() {
+                return Err(format!(
+                    "bond attribute `{name}` has {} values for {} bonds",
+                    a.values.len(),
+                    self.bonds.len()
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// Values of one table column.

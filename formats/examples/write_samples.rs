@@ -154,6 +154,7 @@ fn graph() -> ContactGraph {
         ],
         faces: [vec![0], vec![3], vec![], vec![], vec![0, 1], vec![]],
         bonds: vec![[0, 1], [2, 3]],
+        bond_attributes: Default::default(),
         positions: vec![
             [0.0, 0.0, 0.0],
             [1e-4, 0.0, 0.0],

@@ -15,7 +15,8 @@
 //! - ClumpLibrary (group `library`): `sphere_offset` (S,3), `sphere_radius` (S),
 //!   `first_sphere` (C+1), `volume`, `bounding_radius`, `principal_inertia` (C,3),
 //!   `principal_axes` (C,3,3), `clump_source` (C) and attribute `source`;
-//! - ContactGraph: `pairs` (M,2), `gaps` (M), `bonds` (B,2), `positions` (N,3), group `faces`
+//! - ContactGraph: `pairs` (M,2), `gaps` (M), `bonds` (B,2), `positions` (N,3), group
+//!   `bond_attributes` (one dataset per name, B values, like a packing's `attributes`), group `faces`
 //!   with datasets `xmin` .. `zmax`;
 //! - Table: group `table` (attribute `name`, `column_order`), one dataset per column with
 //!   attributes `unit` and `name`;
@@ -28,6 +29,7 @@
 use crate::h5util::*;
 use crate::volume::{Probe, Volume, VolumeData, VolumeRef};
 use grainpipe_core::fsutil::atomic_write;
+use indexmap::IndexMap;
 use grainpipe_core::*;
 use hdf5_metno::types::{FloatSize, IntSize, TypeDescriptor};
 use hdf5_metno::{File, Group};
@@ -174,12 +176,24 @@ fn write_packing(g: &Group, p: &Packing) -> H5Result<()> {
     if let Some(l) = &p.library {
         write_library(&g.create_group("library")?, l)?;
     }
-    let ag = g.create_group("attributes")?;
+    write_named_values(g, "attributes", &p.attributes, n, "bodies")
+}
+
+/// Named per-item values (body or bond attributes) as group `group`: one dataset per name
+/// with attributes `unit` and `name`, and the order in the group's `order` attribute.
+fn write_named_values(
+    g: &Group,
+    group: &str,
+    values: &IndexMap<String, BodyAttribute>,
+    n: usize,
+    items: &str,
+) -> H5Result<()> {
+    let ag = g.create_group(group)?;
     let mut order = Vec::new();
-    for (name, a) in &p.attributes {
+    for (name, a) in values {
         if a.values.len() != n {
             return Err(err(format!(
-                "attribute `{name}` has {} values for {n} bodies",
+                "attribute `{name}` has {} values for {n} {items}",
                 a.values.len()
             )));
         }
@@ -191,6 +205,23 @@ fn write_packing(g: &Group, p: &Packing) -> H5Result<()> {
     }
     let order: Vec<&str> = order.iter().map(|s| s.as_str()).collect();
     attr_strs(&ag, "order", &order)
+}
+
+/// Reads what [`write_named_values`] wrote.
+fn read_named_values(ag: &Group) -> H5Result<IndexMap<String, BodyAttribute>> {
+    let mut out = IndexMap::new();
+    for key in read_attr_strs(ag, "order").unwrap_or_default() {
+        let ds = ag.dataset(&key)?;
+        let name = read_attr_str(&ds, "name").unwrap_or(key.clone());
+        out.insert(
+            name,
+            BodyAttribute {
+                unit: read_attr_str(&ds, "unit").unwrap_or_default(),
+                values: ds.read_raw::<f64>()?,
+            },
+        );
+    }
+    Ok(out)
 }
 
 /// HDF5 link names cannot contain `/` or be `.`; the true name is kept in a `name` attribute.
@@ -255,7 +286,14 @@ fn write_graph(g: &Group, c: &ContactGraph) -> H5Result<()> {
         let v: Vec<i64> = f.iter().map(|&i| i as i64).collect();
         dataset(&faces, name, &[v.len()], &v)?;
     }
-    Ok(())
+    c.validate().map_err(err)?;
+    write_named_values(
+        g,
+        "bond_attributes",
+        &c.bond_attributes,
+        c.bonds.len(),
+        "bonds",
+    )
 }
 
 fn write_table(g: &Group, t: &Table) -> H5Result<()> {
@@ -447,18 +485,7 @@ fn read_packing(g: &Group) -> H5Result<Packing> {
             frozen: frozen[k] != 0,
         });
     }
-    let ag = g.group("attributes")?;
-    for key in read_attr_strs(&ag, "order").unwrap_or_default() {
-        let ds = ag.dataset(&key)?;
-        let name = read_attr_str(&ds, "name").unwrap_or(key.clone());
-        p.attributes.insert(
-            name,
-            BodyAttribute {
-                unit: read_attr_str(&ds, "unit").unwrap_or_default(),
-                values: ds.read_raw::<f64>()?,
-            },
-        );
-    }
+    p.attributes = read_named_values(&g.group("attributes")?)?;
     Ok(p)
 }
 
@@ -521,6 +548,12 @@ fn read_graph(g: &Group) -> H5Result<ContactGraph> {
             .collect(),
         faces,
         bonds: bonds.chunks_exact(2).map(|b| [b[0], b[1]]).collect(),
+        // Files written before bonds carried attributes have no group.
+        bond_attributes: if g.link_exists("bond_attributes") {
+            read_named_values(&g.group("bond_attributes")?)?
+        } else {
+            IndexMap::new()
+        },
         positions: pos.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect(),
     })
 }

@@ -9,7 +9,7 @@
 use grainpipe_core::fsutil::atomic_write;
 use grainpipe_core::*;
 use serde_json::{json, Map, Value};
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::path::Path;
 
 // ---------------------------------------------------------------------------------------
@@ -103,42 +103,51 @@ pub fn write_csv(a: &Artifact, path: &Path, _prov: &Provenance) -> Result<(), St
             write_csv_records(path, Some(comment), rows)
         }
         Artifact::ContactGraph(g) => {
-            let head = vec!["i".into(), "j".into(), "gap [m]".into(), "bonded".into()];
-            let bonds: HashSet<(usize, usize)> = g
+            g.validate()?;
+            let mut head = vec!["i".into(), "j".into(), "gap [m]".into(), "bonded".into()];
+            for (name, a) in &g.bond_attributes {
+                head.push(if a.unit.is_empty() {
+                    name.clone()
+                } else {
+                    format!("{name} [{}]", a.unit)
+                });
+            }
+            let bonds: HashMap<(usize, usize), usize> = g
                 .bonds
                 .iter()
-                .map(|b| (b[0].min(b[1]), b[0].max(b[1])))
+                .enumerate()
+                .map(|(k, b)| ((b[0].min(b[1]), b[0].max(b[1])), k))
                 .collect();
             let contacts: HashSet<(usize, usize)> = g
                 .contacts
                 .iter()
                 .map(|c| (c.i.min(c.j), c.i.max(c.j)))
                 .collect();
+            // One row per contact (bond attributes empty when unbonded), then the bonds that
+            // are not contacts.
+            let row = |i: usize, j: usize, gap: Option<f64>, bond: Option<usize>| {
+                let mut r = vec![
+                    i.to_string(),
+                    j.to_string(),
+                    gap.map(fmt_f64).unwrap_or_default(),
+                    (bond.is_some() as u8).to_string(),
+                ];
+                for a in g.bond_attributes.values() {
+                    r.push(bond.map(|k| fmt_f64(a.values[k])).unwrap_or_default());
+                }
+                r
+            };
             let rows = g
                 .contacts
                 .iter()
                 .map(|c| {
-                    let b = bonds.contains(&(c.i.min(c.j), c.i.max(c.j)));
-                    vec![
-                        c.i.to_string(),
-                        c.j.to_string(),
-                        fmt_f64(c.gap),
-                        (b as u8).to_string(),
-                    ]
+                    let bond = bonds.get(&(c.i.min(c.j), c.i.max(c.j))).copied();
+                    row(c.i, c.j, Some(c.gap), bond)
                 })
-                .chain(
-                    g.bonds
-                        .iter()
-                        .filter(|b| !contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))))
-                        .map(|b| {
-                            vec![
-                                b[0].to_string(),
-                                b[1].to_string(),
-                                String::new(),
-                                "1".into(),
-                            ]
-                        }),
-                );
+                .chain(g.bonds.iter().enumerate().filter_map(|(k, b)| {
+                    (!contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))))
+                        .then(|| row(b[0], b[1], None, Some(k)))
+                }));
             write_csv_records(path, None, std::iter::once(head).chain(rows))
         }
         other => Err(format!(
@@ -276,6 +285,9 @@ pub fn write_json(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), St
                 "kind": "ContactGraph",
                 "contacts": g.contacts.iter().map(|c| json!([c.i, c.j, num(c.gap)])).collect::<Vec<_>>(),
                 "bonds": g.bonds,
+                "bond_attributes": g.bond_attributes.iter().map(|(n, a)| (n.clone(), json!({
+                    "unit": a.unit, "values": a.values.iter().map(|&x| num(x)).collect::<Vec<_>>()
+                }))).collect::<Map<String, Value>>(),
                 "faces": faces,
                 "positions": g.positions.iter().map(|p| p.iter().map(|&x| num(x)).collect::<Vec<_>>()).collect::<Vec<_>>(),
             })
@@ -388,6 +400,15 @@ pub fn read_contact_graph_json(path: &Path) -> Result<ContactGraph, String> {
             idx(&b[1], "bonds").map_err(at)?,
         ]);
     }
+    for (name, a) in v["bond_attributes"].as_object().into_iter().flatten() {
+        g.bond_attributes.insert(
+            name.clone(),
+            BodyAttribute {
+                unit: a["unit"].as_str().unwrap_or("").to_string(),
+                values: a["values"].as_array().into_iter().flatten().map(f).collect(),
+            },
+        );
+    }
     for (k, name) in FACE_NAMES.iter().enumerate() {
         for x in v["faces"][name].as_array().into_iter().flatten() {
             g.faces[k].push(idx(x, name).map_err(at)?);
@@ -396,6 +417,7 @@ pub fn read_contact_graph_json(path: &Path) -> Result<ContactGraph, String> {
     for p in v["positions"].as_array().into_iter().flatten() {
         g.positions.push([f(&p[0]), f(&p[1]), f(&p[2])]);
     }
+    g.validate().map_err(at)?;
     Ok(g)
 }
 
@@ -405,7 +427,7 @@ crate::vtk_xml::exporter!(
     &["csv"],
     [Table, Tensor, ContactGraph],
     "CSV: tables (header `name [unit]`), tensors (matrix rows after a `#` line with unit and \
-     convention), contact graphs (i, j, gap, bonded)",
+     convention), contact graphs (i, j, gap, bonded, bond attributes)",
     write_csv
 );
 crate::vtk_xml::exporter!(

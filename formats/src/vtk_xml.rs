@@ -12,7 +12,7 @@ use grainpipe_core::{
     Artifact, ArtifactKind, ComponentConvention, ContactGraph, FieldData, Packing, Phase,
     Provenance, Series,
 };
-use std::collections::HashSet;
+use std::collections::{HashMap, HashSet};
 use std::io::{Read, Write};
 use std::path::Path;
 
@@ -363,40 +363,45 @@ fn packing_poly(p: &Packing, prov: &Provenance) -> Result<Poly, String> {
 /// Contacts as lines (gap, bonded) followed by bonds that are not contacts (gap = NaN: no
 /// gap is known for them).
 fn graph_poly(g: &ContactGraph, prov: &Provenance) -> Result<Poly, String> {
+    g.validate()?;
     let n = g.positions.len();
-    let check = |i: usize, j: usize| {
-        if i >= n || j >= n {
-            Err(format!(
-                "contact graph pair ({i}, {j}) refers past its {n} positions"
-            ))
-        } else {
-            Ok(())
-        }
-    };
-    let bonds: HashSet<(usize, usize)> = g
+    // Bond index by unordered pair, for the bond attributes of each line.
+    let bonds: HashMap<(usize, usize), usize> = g
         .bonds
         .iter()
-        .map(|b| (b[0].min(b[1]), b[0].max(b[1])))
+        .enumerate()
+        .map(|(k, b)| ((b[0].min(b[1]), b[0].max(b[1])), k))
         .collect();
     let mut lines = Vec::new();
     let mut gap = Vec::new();
     let mut bonded = Vec::new();
+    // The bond drawn by each line (None for an unbonded contact).
+    let mut line_bond: Vec<Option<usize>> = Vec::new();
     let mut in_contacts = HashSet::new();
     for c in &g.contacts {
-        check(c.i, c.j)?;
         let key = (c.i.min(c.j), c.i.max(c.j));
         in_contacts.insert(key);
         lines.extend([c.i as i64, c.j as i64]);
         gap.push(c.gap);
-        bonded.push(bonds.contains(&key) as u8);
+        bonded.push(bonds.contains_key(&key) as u8);
+        line_bond.push(bonds.get(&key).copied());
     }
-    for b in &g.bonds {
-        check(b[0], b[1])?;
+    for (k, b) in g.bonds.iter().enumerate() {
         if !in_contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))) {
             lines.extend([b[0] as i64, b[1] as i64]);
             gap.push(f64::NAN);
             bonded.push(1);
+            line_bond.push(Some(k));
         }
+    }
+    let mut cell_data = vec![Array::new("gap", 1, &gap), Array::new("bonded", 1, &bonded)];
+    for (name, a) in &g.bond_attributes {
+        // Unbonded contacts have no value: NaN, which ParaView leaves uncoloured.
+        let v: Vec<f64> = line_bond
+            .iter()
+            .map(|b| b.map(|k| a.values[k]).unwrap_or(f64::NAN))
+            .collect();
+        cell_data.push(Array::new(name, 1, &v));
     }
     let mut coordination = vec![0i32; n];
     for c in &g.contacts {
@@ -421,7 +426,7 @@ fn graph_poly(g: &ContactGraph, prov: &Provenance) -> Result<Poly, String> {
             Array::new("body_id", 1, &ids),
             Array::new("coordination", 1, &coordination),
         ],
-        cell_data: vec![Array::new("gap", 1, &gap), Array::new("bonded", 1, &bonded)],
+        cell_data,
         field: field_data(prov, &[], &faces),
     })
 }
@@ -1289,6 +1294,15 @@ mod tests {
             }],
             faces: Default::default(),
             bonds: vec![[1, 0], [1, 2]],
+            bond_attributes: [(
+                "stretch".to_string(),
+                grainpipe_core::BodyAttribute {
+                    unit: String::new(),
+                    values: vec![0.25, 0.5],
+                },
+            )]
+            .into_iter()
+            .collect(),
             positions: vec![[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]],
         };
         let dir = tempfile::tempdir().unwrap();
@@ -1306,6 +1320,14 @@ mod tests {
         assert_eq!(gap[0], -1e-6);
         assert!(gap[1].is_nan());
         assert_eq!(f64s(&f, "DataArray", "coordination"), [1.0, 1.0, 0.0]);
+        // The bonded contact (0, 1) carries bond 0's value, the extra line bond 1's.
+        assert_eq!(f64s(&f, "DataArray", "stretch"), [0.25, 0.5]);
+        // an attribute with the wrong length is refused
+        let mut short = g.clone();
+        short.bond_attributes[0].values.pop();
+        let e = write_vtp(&Artifact::ContactGraph(short), &path, &Provenance::default())
+            .unwrap_err();
+        assert!(e.contains("`stretch` has 1 values for 2 bonds"), "{e}");
         // a pair past the positions is refused
         let mut bad = g;
         bad.contacts[0].j = 9;

@@ -136,6 +136,24 @@ fn graph() -> ContactGraph {
         ],
         faces: [vec![0], vec![], vec![1, 2], vec![], vec![], vec![2]],
         bonds: vec![[0, 1], [0, 2]],
+        bond_attributes: [
+            (
+                "neck/radius".to_string(),
+                BodyAttribute {
+                    unit: "m".into(),
+                    values: vec![1e-6, 2e-6],
+                },
+            ),
+            (
+                "damage".to_string(),
+                BodyAttribute {
+                    unit: String::new(),
+                    values: vec![0.0, 1.0],
+                },
+            ),
+        ]
+        .into_iter()
+        .collect(),
         positions: vec![[0.0, 0.0, 0.0], [1e-4, 0.0, 0.0], [0.0, 1e-4, 2e-4]],
     }
 }
@@ -494,7 +512,9 @@ fn tensor_and_graph_csv_layout() {
     let text = std::fs::read_to_string(&p).unwrap();
     assert_eq!(
         text,
-        "i,j,gap [m],bonded\n0,1,-2.5e-8,1\n2,1,1e-9,0\n0,2,,1\n"
+        // Bond attributes follow, empty on the unbonded contact (2, 1).
+        "i,j,gap [m],bonded,neck/radius [m],damage\n0,1,-2.5e-8,1,1e-6,0\n2,1,1e-9,0,,\n\
+         0,2,,1,2e-6,1\n"
     );
 }
 

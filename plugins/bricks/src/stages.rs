@@ -457,6 +457,7 @@ fn finish<D: StageDefaults>(
         contacts,
         faces,
         bonds: Vec::new(),
+        bond_attributes: Default::default(),
         positions: asm.pos.clone(),
     };
     let face_min = (0..6)

@@ -546,9 +546,11 @@ fn simulate_in_pool(
     };
     let mut bond_count = vec![0.0; n];
     let mut bonds = Vec::new();
-    for (pr, &b) in bed.pairs.iter().zip(&bed.bonded) {
+    let mut bond_time = Vec::new();
+    for ((pr, &b), &t) in bed.pairs.iter().zip(&bed.bonded).zip(&bed.bond_time) {
         if b {
             bonds.push(*pr);
+            bond_time.push(t);
             bond_count[pr[0]] += 1.0;
             bond_count[pr[1]] += 1.0;
         }
@@ -567,6 +569,10 @@ fn simulate_in_pool(
         contacts: contacts.contacts.clone(),
         faces: contacts.faces.clone(),
         bonds,
+        // When each bond formed (0 for bonds given by the input graph).
+        bond_attributes: [("bond_time".to_string(), attr("s", bond_time))]
+            .into_iter()
+            .collect(),
         positions: bed.pos.clone(),
     };
     ctx.info(&format!(
