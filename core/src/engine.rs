@@ -691,7 +691,11 @@ pub struct RunResult {
     pub stats: IndexMap<String, StepStats>,
 }
 
-const CACHE_MAGIC: &[u8; 8] = b"GRPCACH1";
+/// Identifies the layout of cached artifacts: bump it whenever the serialized data model
+/// changes (a field or variant added), so entries written by an older grainpipe are
+/// recomputed instead of misread. 2: field component conventions, bond attributes,
+/// collections.
+const CACHE_MAGIC: &[u8; 8] = b"GRPCACH2";
 
 fn cache_path(dir: &Path, key: &str) -> PathBuf {
     dir.join(format!("{key}.bin"))

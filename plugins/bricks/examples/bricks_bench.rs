@@ -54,7 +54,7 @@ fn m1(fg: f64, bg: f64, cp: f64, sides: [f64; 3], std: f64, n: [usize; 3]) -> Me
             contact_parameter: cp,
             brick_sides: sides,
             std_length: std,
-            ..Default::default()
+            ..BrickParams::method1_defaults()
         },
         brick_numbers: n,
     }
@@ -73,7 +73,7 @@ fn m2(
             contact_parameter: cp,
             brick_sides: sides,
             std_length: std,
-            ..Default::default()
+            ..BrickParams::method2_defaults()
         },
         brick_numbers: n,
     }
@@ -209,7 +209,7 @@ fn main() {
                     common: BrickParams {
                         brick_sides: [1.3, 1.0, 1.0],
                         contact_parameter: 0.2,
-                        ..Default::default()
+                        ..BrickParams::curved_defaults()
                     },
                     hemisphere_radii: [0.2, 0.4],
                     ..Default::default()

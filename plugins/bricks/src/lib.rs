@@ -10,8 +10,7 @@ pub mod sdf;
 pub mod stages;
 
 pub use stages::{
-    BoxParams, BrickParams, Curved, CurvedDefaults, CurvedParams, Method1, Method1Defaults,
-    Method1Params, Method2, Method2Defaults, Method2Params, StageDefaults, UnitBrick,
+    BrickParams, Curved, CurvedParams, Method1, Method1Params, Method2, Method2Params, UnitBrick,
 };
 
 /// Registers the brick stages.

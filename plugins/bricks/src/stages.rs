@@ -4,7 +4,7 @@ use crate::assemble::{self, Assembly};
 use crate::fill::{FillSettings, FillStats, Filler, Mode};
 use crate::sdf::Sdf;
 use grainpipe_core::distributions::{ks_critical_value, ks_distance, SizeDistribution};
-use grainpipe_core::params::{ParamSpec, ParamType, Params};
+use grainpipe_core::params::ParamType;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     params, Artifact, ArtifactKind, ArtifactMeta, Body, BodyAttribute, ContactGraph, Domain,
@@ -17,102 +17,21 @@ use std::f64::consts::PI;
 /// Spheres above which preflight refuses a run (about 4 GB of output at ~400 B per sphere).
 const MAX_SPHERES: f64 = 1e7;
 
-/// The defaults that differ between the brick stages (each follows one of the paper's
-/// examples).
-pub struct DefaultValues {
-    pub face_goal: f64,
-    pub body_goal: f64,
-    pub contact_parameter: f64,
-    pub std_length: f64,
-    pub require_goals: bool,
-    pub max_consecutive_rejections: u64,
-    pub max_rejected_fraction: f64,
-}
-
-/// Selects a stage's [`DefaultValues`]. Implemented by the markers [`Method1Defaults`],
-/// [`Method2Defaults`] and [`CurvedDefaults`], which [`BrickParams`] carries as an empty
-/// flattened group.
-pub trait StageDefaults: Params + Copy {
-    const VALUES: DefaultValues;
-}
-
-macro_rules! defaults_marker {
-    ($($(#[$doc:meta])* $name:ident),* $(,)?) => {$(
-        $(#[$doc])*
-        #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-        pub struct $name {}
-
-        /// Declares no parameter: it only selects defaults.
-        impl Params for $name {
-            fn specs() -> Vec<ParamSpec> {
-                Vec::new()
-            }
-        }
-    )*};
-}
-
-defaults_marker! {
-    /// Defaults of `bricks.method1`.
-    Method1Defaults,
-    /// Defaults of `bricks.method2`.
-    Method2Defaults,
-    /// Defaults of `bricks.curved`.
-    CurvedDefaults,
-}
-
-/// The paper's Example 1A.
-impl StageDefaults for Method1Defaults {
-    const VALUES: DefaultValues = DefaultValues {
-        face_goal: 0.8,
-        body_goal: 0.55,
-        contact_parameter: 0.2,
-        std_length: 15.0,
-        require_goals: true,
-        max_consecutive_rejections: 100,
-        max_rejected_fraction: 1.0,
-    };
-}
-
-/// The paper's Example 2 goals with the Weibull law of eq. (2.4), Table 3.
-impl StageDefaults for Method2Defaults {
-    const VALUES: DefaultValues = DefaultValues {
-        face_goal: 1.0,
-        body_goal: 0.9,
-        contact_parameter: 0.1,
-        std_length: 30.0,
-        require_goals: false,
-        max_consecutive_rejections: 30,
-        max_rejected_fraction: 0.25,
-    };
-}
-
-/// The paper's Example 3A.
-impl StageDefaults for CurvedDefaults {
-    const VALUES: DefaultValues = DefaultValues {
-        face_goal: 0.4,
-        body_goal: 0.4,
-        contact_parameter: 0.1,
-        std_length: 30.0,
-        require_goals: true,
-        max_consecutive_rejections: 100,
-        max_rejected_fraction: 1.0,
-    };
-}
-
-/// The parameters every brick stage shares, flattened into each stage's parameters; `D`
-/// selects the stage's defaults.
+/// The parameters every brick stage shares, flattened into each stage's parameters. The
+/// defaults below are those of `bricks.method1`; each stage includes the group with its own
+/// (`BrickParams::method1_defaults()` and so on), following one of the paper's examples.
 #[params]
-pub struct BrickParams<D: StageDefaults> {
+pub struct BrickParams {
     /// Sphere radius law (Matlab makedist equivalent); default Weibull scale 15.7 um, shape 3.55 (eq. 2.4).
     pub radius: SizeDistribution,
     /// FaceGoal: fraction of each filled face covered by the projections of the spheres on it.
-    #[param(default = D::VALUES.face_goal, ty = "number in (0, 1]")]
+    #[param(default = 0.8, ty = "number in (0, 1]")]
     pub face_goal: f64,
     /// BodyGoal: fraction of the unit-brick (domain) volume filled by spheres.
-    #[param(default = D::VALUES.body_goal, ty = "number in (0, 1]")]
+    #[param(default = 0.55, ty = "number in (0, 1]")]
     pub body_goal: f64,
     /// SphereContactParameter: spheres (and faces) with gaps up to this times the mean radius are in contact.
-    #[param(default = D::VALUES.contact_parameter, ty = "number in [0, 1]")]
+    #[param(default = 0.2, ty = "number in [0, 1]")]
     pub contact_parameter: f64,
     /// ParentParameter: spheres with gaps up to this times the mean radius are parents of new spheres.
     #[param(default = 0.5, ty = "number in (0, 1]")]
@@ -121,40 +40,73 @@ pub struct BrickParams<D: StageDefaults> {
     #[param(default = [1.0, 1.0, 1.0])]
     pub brick_sides: [f64; 3],
     /// Reference length in mean radii (paper: 15 or 30 r_mean).
-    #[param(default = D::VALUES.std_length)]
+    #[param(default = 15.0)]
     pub std_length: f64,
     /// Fail when a face or the volume saturates below its goal (false: warn and keep the saturated fill).
-    #[param(default = D::VALUES.require_goals)]
+    #[param(default = true)]
     pub require_goals: bool,
     /// A phase is saturated after this many rejected radius draws in a row.
-    #[param(default = D::VALUES.max_consecutive_rejections)]
+    #[param(default = 100)]
     pub max_consecutive_rejections: u64,
     /// A phase is saturated once this fraction of its draws (after 100) was rejected; bounds the radius-law distortion (KS <= q/(1-q)). 1 = off.
-    #[param(default = D::VALUES.max_rejected_fraction, ty = "number in (0, 1]")]
+    #[param(default = 1.0, ty = "number in (0, 1]")]
     pub max_rejected_fraction: f64,
-    /// Selects the defaults above; declares no parameter. (`bound = ""`: serde takes the
-    /// bounds on `D` from `StageDefaults` instead of adding its own.)
-    #[param(flatten)]
-    #[serde(bound = "")]
-    pub defaults: D,
 }
 
-/// Parameters of `bricks.method1` and `bricks.method2`: a box-shaped unit brick, tiled.
+impl BrickParams {
+    /// Defaults of `bricks.method1`: the paper's Example 1A (the group's own defaults).
+    pub fn method1_defaults() -> Self {
+        Self::default()
+    }
+
+    /// Defaults of `bricks.method2`: the paper's Example 2 goals with the Weibull law of
+    /// eq. (2.4), Table 3.
+    pub fn method2_defaults() -> Self {
+        BrickParams {
+            face_goal: 1.0,
+            body_goal: 0.9,
+            contact_parameter: 0.1,
+            std_length: 30.0,
+            require_goals: false,
+            max_consecutive_rejections: 30,
+            max_rejected_fraction: 0.25,
+            ..Self::default()
+        }
+    }
+
+    /// Defaults of `bricks.curved`: the paper's Example 3A.
+    pub fn curved_defaults() -> Self {
+        BrickParams {
+            face_goal: 0.4,
+            body_goal: 0.4,
+            contact_parameter: 0.1,
+            std_length: 30.0,
+            ..Self::default()
+        }
+    }
+}
+
+/// Parameters of `bricks.method1`: a box-shaped unit brick, tiled by reflection (defaults:
+/// the paper's Example 1A).
 #[params]
-pub struct BoxParams<D: StageDefaults> {
-    #[param(flatten)]
-    #[serde(bound = "")]
-    pub common: BrickParams<D>,
+pub struct Method1Params {
+    #[param(flatten, default = BrickParams::method1_defaults())]
+    pub common: BrickParams,
     /// BrickNumbers: unit bricks along x, y, z in the total domain.
     #[param(default = [2, 2, 1])]
     pub brick_numbers: [usize; 3],
 }
 
-/// Parameters of `bricks.method1` (defaults: the paper's Example 1A).
-pub type Method1Params = BoxParams<Method1Defaults>;
-/// Parameters of `bricks.method2` (defaults: the paper's Example 2 goals with the Weibull law
-/// of eq. (2.4), Table 3).
-pub type Method2Params = BoxParams<Method2Defaults>;
+/// Parameters of `bricks.method2`: a box-shaped unit brick, tiled by translation (defaults:
+/// the paper's Example 2 goals with the Weibull law of eq. (2.4), Table 3).
+#[params]
+pub struct Method2Params {
+    #[param(flatten, default = BrickParams::method2_defaults())]
+    pub common: BrickParams,
+    /// BrickNumbers: unit bricks along x, y, z in the total domain.
+    #[param(default = [2, 2, 1])]
+    pub brick_numbers: [usize; 3],
+}
 
 /// A sphere cut out of the `bricks.curved` domain, in absolute coordinates (brick corner at 0).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -187,8 +139,8 @@ impl ParamType for ExcludedSphere {
 /// Parameters of `bricks.curved` (defaults: the paper's Example 3A).
 #[params]
 pub struct CurvedParams {
-    #[param(flatten)]
-    pub common: BrickParams<CurvedDefaults>,
+    #[param(flatten, default = BrickParams::curved_defaults())]
+    pub common: BrickParams,
     /// HemisphereRadii as multiples of std_length: balls centred on the x faces, cut from the brick (0 = none; at most half the smallest side).
     #[param(default = [0.5, 0.5])]
     pub hemisphere_radii: [f64; 2],
@@ -245,7 +197,7 @@ fn unit_interval(key: &str, v: f64, open_zero: bool) -> Result<(), StageError> {
     }
 }
 
-impl<D: StageDefaults> BrickParams<D> {
+impl BrickParams {
     /// Validates; returns (mean radius, unit brick side lengths). `numbers` are the unit
     /// bricks per axis, for the size limit reported on `count_key`.
     fn check(
@@ -361,6 +313,24 @@ impl<D: StageDefaults> BrickParams<D> {
             .with_plan(brick)
     }
 
+    /// The preflight of the box stages (`bricks.method1`, `bricks.method2`): validates the
+    /// brick `numbers`; plans the plain unit brick with the announcement.
+    fn preflight_box(
+        &self,
+        info: &StageInfo,
+        min_sides_in_radii: f64,
+        numbers: [usize; 3],
+    ) -> Result<Preflight<UnitBrick>, StageError> {
+        if numbers.contains(&0) {
+            return Err(StageError::param(
+                "brick_numbers",
+                "every count must be >= 1",
+            ));
+        }
+        let (rmean, sides) = self.check(min_sides_in_radii, numbers, "brick_numbers")?;
+        Ok(self.preflight(info, rmean, numbers, UnitBrick::plain(sides)))
+    }
+
     /// The run of every brick stage: fill the unit brick, tile it, find contacts and faces.
     fn run(
         &self,
@@ -385,28 +355,6 @@ impl<D: StageDefaults> BrickParams<D> {
     }
 }
 
-impl<D: StageDefaults> BoxParams<D> {
-    /// Validates; returns the plain unit brick with the announcement.
-    fn preflight(
-        &self,
-        info: &StageInfo,
-        min_sides_in_radii: f64,
-    ) -> Result<Preflight<UnitBrick>, StageError> {
-        if self.brick_numbers.contains(&0) {
-            return Err(StageError::param(
-                "brick_numbers",
-                "every count must be >= 1",
-            ));
-        }
-        let (rmean, sides) =
-            self.common
-                .check(min_sides_in_radii, self.brick_numbers, "brick_numbers")?;
-        Ok(self
-            .common
-            .preflight(info, rmean, self.brick_numbers, UnitBrick::plain(sides)))
-    }
-}
-
 fn outputs() -> Vec<PortSpec> {
     vec![
         PortSpec::new("packing", ArtifactKind::Packing, "Spheres of the total domain (attribute `brick`: unit-brick copy index)."),
@@ -416,11 +364,11 @@ fn outputs() -> Vec<PortSpec> {
 }
 
 /// Everything computed after the unit brick is filled.
-fn finish<D: StageDefaults>(
+fn finish(
     f: &Filler,
     asm: Assembly,
     mode: Mode,
-    c: &BrickParams<D>,
+    c: &BrickParams,
     excluded: Vec<ExcludedSolid>,
 ) -> Outputs {
     let max_gap = c.contact_parameter * f.rmean;
@@ -526,7 +474,7 @@ impl TypedStage for Method1 {
         p: &Method1Params,
         _: &InputMetas,
     ) -> Result<Preflight<UnitBrick>, StageError> {
-        p.preflight(&self.info(), 4.0)
+        p.common.preflight_box(&self.info(), 4.0, p.brick_numbers)
     }
     fn run(
         &self,
@@ -571,7 +519,7 @@ impl TypedStage for Method2 {
         p: &Method2Params,
         _: &InputMetas,
     ) -> Result<Preflight<UnitBrick>, StageError> {
-        p.preflight(&self.info(), 2.0)
+        p.common.preflight_box(&self.info(), 2.0, p.brick_numbers)
     }
     fn run(
         &self,

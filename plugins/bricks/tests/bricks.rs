@@ -144,7 +144,7 @@ fn preflight_names_the_bad_parameter() {
             &Method1Params {
                 common: BrickParams {
                     face_goal: 1.5,
-                    ..Default::default()
+                    ..BrickParams::method1_defaults()
                 },
                 ..Default::default()
             },
@@ -162,7 +162,7 @@ fn preflight_names_the_bad_parameter() {
                         min: None,
                         max: None,
                     },
-                    ..Default::default()
+                    ..BrickParams::method1_defaults()
                 },
                 ..Default::default()
             },
@@ -176,7 +176,7 @@ fn preflight_names_the_bad_parameter() {
             &Method1Params {
                 common: BrickParams {
                     std_length: 3.0,
-                    ..Default::default()
+                    ..BrickParams::method1_defaults()
                 },
                 ..Default::default()
             },
@@ -257,7 +257,7 @@ fn method1_example_1b_ks_distance_is_bounded() {
         common: BrickParams {
             std_length: 30.0,
             contact_parameter: 0.1,
-            ..Default::default()
+            ..BrickParams::method1_defaults()
         },
         ..Default::default()
     };
@@ -279,7 +279,7 @@ fn method2_tiles_seamlessly() {
     let p = Method2Params {
         common: BrickParams {
             std_length: 15.0,
-            ..Default::default()
+            ..BrickParams::method2_defaults()
         },
         ..Default::default()
     };
@@ -325,7 +325,7 @@ fn same_seed_same_bed_on_any_thread_count() {
         common: BrickParams {
             std_length: 15.0,
             brick_sides: [1.0, 1.0, 0.24],
-            ..Default::default()
+            ..BrickParams::method2_defaults()
         },
         brick_numbers: [3, 3, 1],
     };
@@ -348,7 +348,7 @@ fn impossible_goal_fails_clearly() {
     let p = Method1Params {
         common: BrickParams {
             body_goal: 0.95,
-            ..Default::default()
+            ..BrickParams::method1_defaults()
         },
         ..Default::default()
     };
@@ -446,7 +446,7 @@ fn curved_domain_takes_any_cut_out_ball() {
     let p = CurvedParams {
         common: BrickParams {
             std_length: 20.0,
-            ..Default::default()
+            ..BrickParams::curved_defaults()
         },
         hemisphere_radii: [0.0, 0.0],
         excluded_spheres: vec![grainpipe_bricks::stages::ExcludedSphere {

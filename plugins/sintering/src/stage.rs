@@ -885,7 +885,7 @@ impl TypedStage for LaserSintering {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "sintering.laser",
-            "0.1.0",
+            "0.2.0",
             "Laser heating of a particle bed with bond formation (Method 2 paper, \
              section 5): per-particle heat balance m_i C_p dT_i/dt = Q r_i^2/r_L^2 (top-\
              surface particles within r_L of the spot) + k_b (T_R - T_i) + sum_j k_ij \

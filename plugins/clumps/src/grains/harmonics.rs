@@ -88,7 +88,7 @@ impl TypedStage for FromHarmonics {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "grains.from_harmonics",
-            "1.0.0",
+            "1.1.0",
             "Star-shaped grains from spherical-harmonic coefficient files (VCCTL `-anm-` \
              format, the real sand grains of data/sand-grains/), rescaled to a target \
              size and voxelized: the default grain source of the sand-core pipelines.",

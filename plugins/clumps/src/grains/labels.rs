@@ -147,7 +147,7 @@ impl TypedStage for FromLabels {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "grains.from_labels",
-            "1.0.0",
+            "1.1.0",
             "One mask per grain from a segmented scan whose labels are grain ids (read it \
              with import.raw / import.hdf5 / import.netcdf / import.vti). A PhaseImage \
              holds at most 255 grain ids (u8 labels); connect a Field of integer values \

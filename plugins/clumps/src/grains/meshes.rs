@@ -32,7 +32,7 @@ impl TypedStage for FromMeshes {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "grains.from_meshes",
-            "1.0.0",
+            "1.1.0",
             "Grains from closed triangle surfaces (STL ASCII or binary, OBJ), one grain \
              per file, voxelized by ray parity (a voxel is inside when a ray from its \
              centre crosses the surface an odd number of times).",

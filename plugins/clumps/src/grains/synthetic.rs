@@ -132,7 +132,7 @@ impl TypedStage for Synthetic {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "grains.synthetic",
-            "1.0.0",
+            "1.1.0",
             "Random star-shaped grains: radius exp(g) with g a Gaussian random field on \
              the sphere (power-law spectrum, fitted to the real grains of \
              data/sand-grains), stretched to random length/width/thickness ratios (VCCTL \
