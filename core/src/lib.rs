@@ -11,6 +11,7 @@ pub mod plugin_host;
 pub mod registry;
 pub mod spatial;
 pub mod stage;
+pub mod suggest;
 pub mod testing;
 pub mod units;
 

@@ -98,7 +98,7 @@ pub fn unknown_keys(given: &Value, specs: &[ParamSpec]) -> Vec<UnknownKey> {
         .filter(|k| !specs.iter().any(|s| s.name == k.as_str()))
         .map(|k| UnknownKey {
             key: k.clone(),
-            suggestion: crate::registry::closest(k, specs.iter().map(|s| s.name)),
+            suggestion: crate::suggest::closest(k, specs.iter().map(|s| s.name)),
         })
         .collect()
 }

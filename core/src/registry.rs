@@ -4,6 +4,7 @@
 use crate::model::{Artifact, ArtifactKind, Provenance};
 use crate::params::RUST_TYPE_WORDS;
 use crate::stage::{Stage, Typed, TypedStage};
+pub use crate::suggest::closest;
 use indexmap::IndexMap;
 use std::path::Path;
 use std::sync::Arc;
@@ -180,19 +181,23 @@ impl Registry {
                     }
                 }
             }
-            r.stage
+            let normalized = r
+                .stage
                 .normalize_params(&serde_json::json!({}))
                 .map_err(|e| format!("{id}: defaults do not parse: {e}"))?;
+            // What a run with no `with:` uses must be what `pipe describe` shows.
+            for p in &info.params {
+                if normalized.get(p.name) != Some(&p.default) {
+                    return Err(format!(
+                        "{id}: parameter `{}` is documented with default {} but an empty \
+                         `with:` gives {}",
+                        p.name,
+                        p.default,
+                        normalized.get(p.name).unwrap_or(&serde_json::Value::Null)
+                    ));
+                }
+            }
         }
         Ok(())
     }
-}
-
-/// The candidate closest to `word` by Jaro-Winkler similarity, if reasonably close.
-pub fn closest<'a>(word: &str, candidates: impl Iterator<Item = &'a str>) -> Option<String> {
-    candidates
-        .map(|c| (strsim::jaro_winkler(word, c), c))
-        .filter(|(s, _)| *s > 0.75)
-        .max_by(|a, b| a.0.total_cmp(&b.0))
-        .map(|(_, c)| c.to_string())
 }

@@ -313,6 +313,8 @@ pub trait TypedStage: Send + Sync + 'static {
 pub struct Typed<T: TypedStage> {
     inner: T,
     info: StageInfo,
+    /// This stage's defaults, key by key (flattened groups included).
+    defaults: serde_json::Map<String, serde_json::Value>,
 }
 
 impl<T: TypedStage> Typed<T> {
@@ -324,10 +326,24 @@ impl<T: TypedStage> Typed<T> {
             info.id
         );
         info.params = T::Params::specs();
-        Typed { inner, info }
+        let defaults = match serde_json::to_value(T::Params::default()) {
+            Ok(serde_json::Value::Object(m)) => m,
+            other => panic!(
+                "{}: parameters must serialize to a mapping, got {other:?}",
+                info.id
+            ),
+        };
+        Typed {
+            inner,
+            info,
+            defaults,
+        }
     }
 
-    /// Checks the keys against the declaration, then deserializes.
+    /// Checks the keys against the declaration, fills in this stage's defaults, then
+    /// deserializes. Filling the defaults here (rather than leaving them to serde) is what
+    /// gives a flattened group the defaults of the stage that includes it: serde would take
+    /// the group's own `Default` for keys missing inside a flattened field.
     fn parse(&self, params: &serde_json::Value) -> Result<T::Params, StageError> {
         if let Some(u) = unknown_keys(params, &self.info.params).into_iter().next() {
             return Err(StageError::UnknownParam {
@@ -335,7 +351,17 @@ impl<T: TypedStage> Typed<T> {
                 suggestion: u.suggestion,
             });
         }
-        serde_path_to_error::deserialize(params).map_err(|e| {
+        let given = match params {
+            serde_json::Value::Object(m) => m,
+            serde_json::Value::Null => &serde_json::Map::new(),
+            _ => return Err(StageError::param("", "parameters must be a mapping")),
+        };
+        let mut full = self.defaults.clone();
+        for (k, v) in given {
+            full.insert(k.clone(), v.clone());
+        }
+        let full = serde_json::Value::Object(full);
+        serde_path_to_error::deserialize(&full).map_err(|e| {
             let path = e.path().to_string();
             let inner = e.into_inner().to_string();
             let key = if path == "." || path.is_empty() {

@@ -79,6 +79,34 @@ impl TypedStage for Source {
     }
 }
 
+/// Includes the `Noise` group with its own default (`fail: true`).
+struct Noisy;
+impl TypedStage for Noisy {
+    type Params = NoisyParams;
+    type Plan = ();
+    fn info(&self) -> StageInfo {
+        StageInfo::new("test.noisy", "1", "fails unless told otherwise")
+            .outputs(vec![PortSpec::new("table", ArtifactKind::Table, "nothing")])
+    }
+    fn preflight(&self, _: &NoisyParams, _: &InputMetas) -> Result<Preflight, StageError> {
+        Ok(Preflight::from_info(&self.info(), 0))
+    }
+    fn run(
+        &self,
+        p: &NoisyParams,
+        _: &(),
+        _: &Inputs,
+        _: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        if p.noise.fail {
+            return Err(StageError::failed("noisy by default"));
+        }
+        let mut o = Outputs::new();
+        o.insert("table".into(), Artifact::Table(Table::new("x")));
+        Ok(o)
+    }
+}
+
 #[params]
 struct ScaleParams {
     /// Factor.
@@ -185,6 +213,7 @@ fn registry() -> Registry {
     r.add_stage(Source);
     r.add_stage(Scale);
     r.add_stage(ReadNumbers);
+    r.add_stage(Noisy);
     r.check_consistency().unwrap();
     r
 }
@@ -446,6 +475,17 @@ fn keys_of_a_flattened_group_are_accepted_and_typos_still_refused() {
     assert_eq!(noisy[0].name, "fail");
     assert_eq!(noisy[0].default, serde_json::json!(true));
     assert!(NoisyParams::default().noise.fail);
+    // ... and a run without `with:` uses them (serde alone would take the group's own
+    // default, `fail: false`, for a key missing inside a flattened field).
+    let d = doc("name: t\nstages:\n  - id: n\n    use: test.noisy\n");
+    let p = plan(&d, &reg, &PlanOptions::default()).unwrap();
+    let e = execute(&d, &p, &RunOptions { cache_dir: None }, &mut SilentObserver)
+        .err()
+        .unwrap();
+    assert!(e.message.contains("noisy by default"), "{e}");
+    let d = doc("name: t\nstages:\n  - id: n\n    use: test.noisy\n    with: {fail: false}\n");
+    let p = plan(&d, &reg, &PlanOptions::default()).unwrap();
+    execute(&d, &p, &RunOptions { cache_dir: None }, &mut SilentObserver).unwrap();
     let d =
         doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {n: 2, fial: true}\n");
     let e = plan(&d, &reg, &PlanOptions::default()).err().unwrap();

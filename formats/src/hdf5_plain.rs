@@ -27,12 +27,12 @@
 //!   and a `time` attribute [s].
 
 use crate::h5util::*;
-use crate::volume::{Probe, Volume, VolumeData, VolumeRef};
+use crate::volume::{Probe, StatedGrid, Volume, VolumeData, VolumeRef};
 use grainpipe_core::fsutil::atomic_write;
-use indexmap::IndexMap;
 use grainpipe_core::*;
 use hdf5_metno::types::{FloatSize, IntSize, TypeDescriptor};
 use hdf5_metno::{File, Group};
+use indexmap::IndexMap;
 use std::path::Path;
 
 fn err(msg: impl Into<String>) -> hdf5_metno::Error {
@@ -655,12 +655,7 @@ fn volume_from(g: &Group, name: &str) -> H5Result<Volume> {
         TypeDescriptor::Float(_) => VolumeData::F64(ds.read_raw()?),
         t => return Err(err(format!("dataset `{name}` holds {t:?}, not numbers"))),
     };
-    let three = |k: &str| read_attr_f64s(&ds, k).and_then(|v| <[f64; 3]>::try_from(v).ok());
-    let spacing = three("spacing")
-        .or_else(|| three("element_size_um").map(|[z, y, x]| [x * 1e-6, y * 1e-6, z * 1e-6]));
-    let periodic = three("periodic")
-        .map(|p| p.map(|x| x != 0.0))
-        .unwrap_or_default();
+    let (spacing, origin, periodic) = dataset_grid(&ds);
     let mut phases = Vec::new();
     if let (Some(ids), Some(names)) = (
         read_attr_f64s(&ds, "phase_ids"),
@@ -683,11 +678,23 @@ fn volume_from(g: &Group, name: &str) -> H5Result<Volume> {
             .and_then(|c| ComponentConvention::from_name(&c))
             .unwrap_or_default(),
         spacing,
-        origin: three("origin"),
+        origin,
         periodic,
         data,
         phases,
     })
+}
+
+/// The grid of a dataset as the readers take it: `spacing`, else ImageJ's `element_size_um`
+/// (z, y, x in micrometres), `origin`, `periodic`.
+pub(crate) fn dataset_grid(ds: &hdf5_metno::Dataset) -> StatedGrid {
+    let three = |k: &str| read_attr_f64s(ds, k).and_then(|v| <[f64; 3]>::try_from(v).ok());
+    let spacing = three("spacing")
+        .or_else(|| three("element_size_um").map(|[z, y, x]| [x * 1e-6, y * 1e-6, z * 1e-6]));
+    let periodic = three("periodic")
+        .map(|p| p.map(|x| x != 0.0))
+        .unwrap_or_default();
+    (spacing, three("origin"), periodic)
 }
 
 crate::vtk_xml::exporter!(

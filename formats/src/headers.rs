@@ -7,12 +7,12 @@
 //! bit; the tests below hold every reader to its full counterpart on the file variants the
 //! full readers accept.
 
-use crate::volume::{from_bytes, Le, Probe, Volume};
-use crate::vtk_xml::{Node, VtkFile};
-use base64::Engine;
-use grainpipe_core::units::{parse_unit, Dimension};
-use netcdf::AttributeValue;
-use std::io::{BufReader, Read};
+use crate::volume::{Probe, Volume};
+use crate::vtk_xml::{
+    array_components, choose_array, no_array_error, vtk_type_size, Encoding, ImageGrid, Node,
+    VtkFile,
+};
+use std::io::BufReader;
 use std::path::Path;
 
 /// What a volume file says about its array before the array is read: the probe of its
@@ -66,16 +66,13 @@ pub fn hdf5_header(path: &Path, dataset: &str) -> Result<Header, String> {
     let ds = f
         .dataset(dataset)
         .map_err(|e| format!("{}: no dataset `{dataset}` ({e})", path.display()))?;
-    let three =
-        |k: &str| crate::h5util::read_attr_f64s(&ds, k).and_then(|v| <[f64; 3]>::try_from(v).ok());
-    let spacing = probe
-        .spacing
-        .or_else(|| three("element_size_um").map(|[z, y, x]| [x * 1e-6, y * 1e-6, z * 1e-6]));
-    let periodic = three("periodic")
-        .map(|p| p.map(|x| x != 0.0))
-        .unwrap_or_default();
+    let (spacing, origin, periodic) = crate::hdf5_plain::dataset_grid(&ds);
     Ok(Header {
-        probe: Probe { spacing, ..probe },
+        probe: Probe {
+            spacing,
+            origin,
+            ..probe
+        },
         periodic,
     })
 }
@@ -93,97 +90,15 @@ pub fn netcdf_header(path: &Path, var: &str) -> Result<Header, String> {
     let v = f
         .variable(var)
         .ok_or_else(|| at(format!("no variable `{var}`")))?;
-    let dnames: Vec<String> = v.dimensions().iter().map(|d| d.name()).collect();
-    let ndims = v.dimensions().len();
-    let mut h = Header::from(probe);
-    if h.probe.spacing.is_none() {
-        // CF coordinates: dimension order is (z, y, x) or (y, x); axis a of [x, y, z].
-        let axis_names: Vec<&String> = dnames
-            .iter()
-            .take(if ndims == 2 { 2 } else { 3 })
-            .rev()
-            .collect();
-        let mut s = [1.0; 3];
-        let mut o = [0.0; 3];
-        let mut ok = axis_names.len() >= 2;
-        for (a, dn) in axis_names.iter().enumerate() {
-            match nc_coordinate(&f, dn) {
-                Some(Ok((sa, oa))) => {
-                    s[a] = sa;
-                    o[a] = oa;
-                }
-                Some(Err(e)) => return Err(at(e)),
-                None => ok = false,
-            }
-        }
-        if ok {
-            if ndims == 2 {
-                s[2] = s[0];
-            }
-            h.probe.spacing = Some(s);
-            h.probe.origin = Some(o);
-        }
-    }
-    h.periodic = nc_f64s(f.attribute("periodic").map(|a| a.value()))
-        .and_then(|v| <[f64; 3]>::try_from(v).ok())
-        .map(|p| p.map(|x| x != 0.0))
-        .unwrap_or_default();
-    Ok(h)
-}
-
-/// Numbers of a NetCDF attribute (as the NetCDF reader takes them).
-fn nc_f64s(v: Option<netcdf::Result<AttributeValue>>) -> Option<Vec<f64>> {
-    Some(match v?.ok()? {
-        AttributeValue::Doubles(d) => d,
-        AttributeValue::Floats(d) => d.into_iter().map(f64::from).collect(),
-        AttributeValue::Double(d) => vec![d],
-        AttributeValue::Uchars(d) => d.into_iter().map(f64::from).collect(),
-        AttributeValue::Schars(d) => d.into_iter().map(f64::from).collect(),
-        AttributeValue::Shorts(d) => d.into_iter().map(f64::from).collect(),
-        AttributeValue::Ints(d) => d.into_iter().map(f64::from).collect(),
-        AttributeValue::Uchar(d) => vec![d.into()],
-        AttributeValue::Int(d) => vec![d.into()],
-        _ => return None,
-    })
-}
-
-/// (spacing, lower corner) in metres of a uniformly spaced CF coordinate variable, as the
-/// NetCDF reader computes them.
-fn nc_coordinate(f: &netcdf::File, name: &str) -> Option<Result<(f64, f64), String>> {
-    let c = f.variable(name)?;
-    let vals: Vec<f64> = c.get_values(..).ok()?;
-    if vals.len() < 2 {
-        return None;
-    }
-    let units = match c.attribute_value("units").and_then(|r| r.ok()) {
-        Some(AttributeValue::Str(s)) => Some(s),
-        _ => None,
-    };
-    let scale = match units {
-        Some(u) => match parse_unit(&u) {
-            Ok((k, d)) if d == Dimension::LENGTH => k,
-            _ => {
-                return Some(Err(format!(
-                    "coordinate `{name}` has units `{u}`, not a length"
-                )))
-            }
+    let (spacing, origin, periodic) = crate::netcdf_io::grid(&f, &v).map_err(at)?;
+    Ok(Header {
+        probe: Probe {
+            spacing,
+            origin,
+            ..probe
         },
-        None => 1.0,
-    };
-    let s = vals[1] - vals[0];
-    let n = vals.len() as f64;
-    let tol = 1e-9 * s.abs() * n;
-    if s <= 0.0
-        || vals
-            .iter()
-            .enumerate()
-            .any(|(i, &x)| (x - (vals[0] + i as f64 * s)).abs() > tol.max(1e-12 * x.abs()))
-    {
-        return Some(Err(format!(
-            "coordinate `{name}` is not increasing uniformly; give `spacing` and `origin` explicitly"
-        )));
-    }
-    Some(Ok((s * scale, (vals[0] - 0.5 * s) * scale)))
+        periodic,
+    })
 }
 
 // ---------------------------------------------------------------------------------------
@@ -202,55 +117,16 @@ pub fn vti_header(path: &Path, array: Option<&str>) -> Result<Header, String> {
         .image
         .as_ref()
         .ok_or_else(|| at("no <ImageData>: not a .vti image".into()))?;
-    let ext: [f64; 6] = nums(img.attr("WholeExtent"), "WholeExtent")
-        .map_err(at)?
-        .ok_or_else(|| at("no WholeExtent".into()))?;
-    let ext = ext.map(|e| e as i64);
-    let spacing = nums::<3>(img.attr("Spacing"), "Spacing").map_err(at)?;
-    let mut origin = nums::<3>(img.attr("Origin"), "Origin").map_err(at)?;
-    if let Some(d) = nums::<9>(img.attr("Direction"), "Direction").map_err(at)? {
-        let id = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
-        if d.iter().zip(id).any(|(a, b)| (a - b).abs() > 1e-12) {
-            return Err(at(
-                "rotated images (Direction not identity) are not supported".into(),
-            ));
-        }
-    }
+    let grid = ImageGrid::of(img).map_err(at)?;
     if !s.piece_seen {
         return Err(at("no <Piece>".into()));
     }
     let (node, is_cell) = s.choice().ok_or_else(|| {
-        let names: Vec<&str> = s
-            .arrays
-            .iter()
-            .filter_map(|(a, _)| a.attr("Name"))
-            .collect();
-        at(format!(
-            "no array {} (arrays: {names:?})",
-            array.map(|a| format!("`{a}`")).unwrap_or_default()
-        ))
+        let names = s.arrays.iter().filter_map(|(a, _)| a.attr("Name"));
+        at(no_array_error(array, names))
     })?;
-    let span = |a: usize| (ext[2 * a + 1] - ext[2 * a]).max(0) as usize;
-    let mut dims = [span(0), span(1), span(2)];
-    if is_cell {
-        dims = dims.map(|d| d.max(1));
-    } else {
-        dims = dims.map(|d| d + 1);
-        if let (Some(o), Some(s)) = (origin.as_mut(), spacing) {
-            for a in 0..3 {
-                o[a] -= 0.5 * s[a];
-            }
-        }
-    }
-    if let Some(o) = origin.as_mut() {
-        for a in 0..3 {
-            o[a] += ext[2 * a] as f64 * spacing.map(|s| s[a]).unwrap_or(0.0);
-        }
-    }
-    let components: usize = node
-        .attr("NumberOfComponents")
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(1);
+    let (dims, spacing, origin) = grid.voxels(is_cell);
+    let components = array_components(node);
     let dtype = node.attr("type").unwrap_or("Float32").to_string();
     let elem_bytes = vtk_type_size(&dtype).ok_or_else(|| {
         at(format!(
@@ -273,28 +149,6 @@ pub fn vti_header(path: &Path, array: Option<&str>) -> Result<Header, String> {
         },
         periodic,
     })
-}
-
-fn vtk_type_size(t: &str) -> Option<usize> {
-    Some(match t {
-        "Int8" | "UInt8" => 1,
-        "Int16" | "UInt16" => 2,
-        "Int32" | "UInt32" | "Float32" => 4,
-        "Int64" | "UInt64" | "Float64" => 8,
-        _ => return None,
-    })
-}
-
-fn nums<const N: usize>(s: Option<&str>, what: &str) -> Result<Option<[f64; N]>, String> {
-    let Some(s) = s else { return Ok(None) };
-    let v: Vec<f64> = s
-        .split_whitespace()
-        .map(|t| t.parse::<f64>())
-        .collect::<Result<_, _>>()
-        .map_err(|e| format!("{what} `{s}`: {e}"))?;
-    v.try_into()
-        .map(Some)
-        .map_err(|_| format!("{what} `{s}` needs {N} numbers"))
 }
 
 /// What the tag stream of a `.vti` says, up to the chosen array.
@@ -330,27 +184,13 @@ enum Place {
 
 impl VtiScan {
     fn run(path: &Path, array: Option<&str>) -> Result<VtiScan, String> {
-        use quick_xml::events::{BytesStart, Event};
+        use quick_xml::events::Event;
         let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
         let mut reader = quick_xml::Reader::from_reader(BufReader::new(file));
         let mut buf = Vec::new();
         let mut s = VtiScan {
             want: array.map(str::to_string),
             ..Default::default()
-        };
-        let open = |e: &BytesStart| -> Result<Node, String> {
-            let mut n = Node {
-                name: e.name().as_ref().to_string(),
-                ..Node::default()
-            };
-            for a in e.attributes() {
-                let a = a.map_err(|e| e.to_string())?;
-                let v = a
-                    .normalized_value(quick_xml::XmlVersion::Implicit1_0)
-                    .map_err(|e| e.to_string())?;
-                n.attrs.push((a.key.as_ref().to_string(), v.into_owned()));
-            }
-            Ok(n)
         };
         let mut stack: Vec<Place> = Vec::new();
         let mut seen_sections = [false; 2];
@@ -384,7 +224,7 @@ impl VtiScan {
                     continue;
                 }
             };
-            let node = open(e)?;
+            let node = Node::open(e)?;
             let parent = stack.last().copied().unwrap_or(Place::Other);
             let place = match node.name.as_str() {
                 "VTKFile" if s.vtk.is_none() => {
@@ -449,19 +289,13 @@ impl VtiScan {
     fn choice(&self) -> Option<(&Node, bool)> {
         let active = self.cell_active.clone().flatten();
         let want = self.want.clone().or(active);
-        let cells = self.arrays.iter().filter(|(_, c)| *c);
-        let points = self.arrays.iter().filter(|(_, c)| !*c);
-        match want {
-            Some(name) => {
-                let named = |(a, _): &&(Node, bool)| a.attr("Name") == Some(name.as_str());
-                cells
-                    .clone()
-                    .find(named)
-                    .or_else(|| points.clone().find(named))
-            }
-            None => cells.clone().next().or_else(|| points.clone().next()),
-        }
-        .map(|(n, c)| (n, *c))
+        let of = |cell: bool| {
+            self.arrays
+                .iter()
+                .filter(move |a| a.1 == cell)
+                .map(|a| &a.0)
+        };
+        choose_array(of(true), of(false), want.as_deref())
     }
 
     /// True once no later tag can change [`VtiScan::choice`]: a cell array is chosen and the
@@ -477,115 +311,18 @@ impl VtiScan {
         let Some(p) = &self.periodic else {
             return Ok(None);
         };
-        let vtk = self.vtk.as_ref().expect("checked by run");
-        let ty = p.attr("type").unwrap_or("Float32");
-        let little = vtk.attr("byte_order") != Some("BigEndian");
-        let bytes = match p.attr("format").unwrap_or("ascii") {
-            "ascii" => {
-                return p
-                    .text
-                    .split_whitespace()
-                    .map(|t| {
-                        t.parse::<f64>()
-                            .map_err(|e| format!("array `periodic`: {e}"))
-                    })
-                    .collect::<Result<Vec<_>, _>>()
-                    .map(Some)
+        let values = if p.attr("format") == Some("appended") {
+            let f = VtkFile::open(path)?;
+            match f.field_array("periodic") {
+                Some(n) => f.array_values(n)?,
+                None => return Ok(None),
             }
-            "binary" => inline_binary(
-                &p.text,
-                vtk.attr("header_type") == Some("UInt64"),
-                little,
-                matches!(vtk.attr("compressor"), Some(c) if !c.is_empty()),
-            )
-            .map_err(|e| format!("array `periodic`: {e}"))?,
-            _ => {
-                let f = VtkFile::open(path)?;
-                return match f.field_array("periodic") {
-                    Some(n) => {
-                        let v = f.array_values(n)?;
-                        Ok(Some((0..v.len()).map(|i| v.get(i)).collect()))
-                    }
-                    None => Ok(None),
-                };
-            }
-        };
-        fn conv<T: Le + Into<f64>>(b: &[u8], little: bool) -> Vec<f64> {
-            from_bytes::<T>(b, little)
-                .into_iter()
-                .map(Into::into)
-                .collect()
-        }
-        Ok(Some(match ty {
-            "UInt8" => conv::<u8>(&bytes, little),
-            "Int8" => conv::<i8>(&bytes, little),
-            "UInt16" => conv::<u16>(&bytes, little),
-            "Int16" => conv::<i16>(&bytes, little),
-            "UInt32" => conv::<u32>(&bytes, little),
-            "Int32" => conv::<i32>(&bytes, little),
-            "Int64" => from_bytes::<i64>(&bytes, little)
-                .into_iter()
-                .map(|x| x as f64)
-                .collect(),
-            "UInt64" => from_bytes::<u64>(&bytes, little)
-                .into_iter()
-                .map(|x| x as f64)
-                .collect(),
-            "Float32" => conv::<f32>(&bytes, little),
-            "Float64" => conv::<f64>(&bytes, little),
-            t => return Err(format!("array `periodic`: type {t} is not numeric")),
-        }))
-    }
-}
-
-/// The bytes of a small inline `format="binary"` array (base64, with VTK's size header, zlib
-/// blocks when the file is compressed).
-fn inline_binary(
-    text: &str,
-    u64_header: bool,
-    little: bool,
-    zlib: bool,
-) -> Result<Vec<u8>, String> {
-    let b64 = base64::engine::general_purpose::STANDARD;
-    let t: Vec<u8> = text.bytes().filter(|b| !b.is_ascii_whitespace()).collect();
-    let hs = if u64_header { 8 } else { 4 };
-    let value = |b: &[u8]| {
-        if u64_header {
-            u64::from_bytes(b, little) as usize
         } else {
-            u32::from_bytes(b, little) as usize
-        }
-    };
-    let dec = |t: &[u8]| b64.decode(t).map_err(|e| format!("bad base64: {e}"));
-    if !zlib {
-        let all = dec(&t)?;
-        let n = value(all.get(..hs).ok_or("truncated array")?);
-        return all
-            .get(hs..hs + n)
-            .map(<[u8]>::to_vec)
-            .ok_or_else(|| "truncated array".to_string());
+            let enc = Encoding::of(self.vtk.as_ref().expect("checked by run"))?;
+            enc.inline_payload(p)?.values(p, enc.little)?
+        };
+        Ok(Some((0..values.len()).map(|i| values.get(i)).collect()))
     }
-    let b64len = |bytes: usize| bytes.div_ceil(3) * 4;
-    let first = dec(t.get(..b64len(3 * hs)).ok_or("truncated header")?)?;
-    let nblocks = value(&first[..hs]);
-    let hlen = b64len((3 + nblocks) * hs);
-    let header = dec(t.get(..hlen).ok_or("truncated header")?)?;
-    let body = dec(&t[hlen..])?;
-    let mut out = Vec::new();
-    let mut pos = 0;
-    for k in 0..nblocks {
-        let c = value(
-            header
-                .get((3 + k) * hs..(4 + k) * hs)
-                .ok_or("truncated header")?,
-        );
-        let chunk = body.get(pos..pos + c).ok_or("compressed data truncated")?;
-        pos += c;
-        flate2::read::ZlibDecoder::new(chunk)
-            .read_to_end(&mut out)
-            .map_err(|e| format!("zlib: {e}"))?;
-    }
-    Ok(out)
 }
 
 /// Small volumes and files in the layouts the readers take, for the tests of this module

@@ -4,7 +4,7 @@
 //! provenance as global attributes. Global `spacing`/`origin` (x, y, z order) keep the grid
 //! exact for readers that do not want to difference coordinates.
 
-use crate::volume::{Probe, Volume, VolumeData, VolumeRef};
+use crate::volume::{Probe, StatedGrid, Volume, VolumeData, VolumeRef};
 use grainpipe_core::fsutil::atomic_write;
 use grainpipe_core::units::{parse_unit, Dimension};
 use grainpipe_core::{Artifact, ComponentConvention, FieldData, Phase, Provenance};
@@ -155,16 +155,13 @@ pub fn probe_netcdf_variable(path: &Path, var: &str) -> Result<Probe, String> {
     let v = f.variable(var).ok_or_else(|| at(missing(&f, var)))?;
     let lens: Vec<usize> = v.dimensions().iter().map(|d| d.len()).collect();
     let (dims, components) = shape(&lens).map_err(at)?;
-    let global = |k: &str| {
-        attr_f64s(f.attribute(k).map(|a| a.value())).and_then(|v| <[f64; 3]>::try_from(v).ok())
-    };
     Ok(Probe {
         dims,
         components,
         dtype: format!("{:?}", v.vartype()),
         elem_bytes: v.vartype().size(),
-        spacing: global("spacing"),
-        origin: global("origin"),
+        spacing: global3(&f, "spacing"),
+        origin: global3(&f, "origin"),
     })
 }
 
@@ -195,7 +192,6 @@ pub fn read_netcdf_variable(path: &Path, var: &str) -> Result<Volume, String> {
     quiet_hdf5();
     let f = netcdf::open(path).map_err(|e| at(format!("cannot open as NetCDF: {e}")))?;
     let v = f.variable(var).ok_or_else(|| at(missing(&f, var)))?;
-    let dnames: Vec<String> = v.dimensions().iter().map(|d| d.name()).collect();
     let lens: Vec<usize> = v.dimensions().iter().map(|d| d.len()).collect();
     let (dims, components) = shape(&lens).map_err(at)?;
     let data = match v.vartype() {
@@ -217,37 +213,7 @@ pub fn read_netcdf_variable(path: &Path, var: &str) -> Result<Volume, String> {
         }
         t => return Err(at(format!("variable `{var}` holds {t:?}, not numbers"))),
     };
-    let global = |k: &str| attr_f64s(f.attribute(k).map(|a| a.value()));
-    let three = |x: Option<Vec<f64>>| x.and_then(|v| <[f64; 3]>::try_from(v).ok());
-    let (mut spacing, mut origin) = (three(global("spacing")), three(global("origin")));
-    if spacing.is_none() {
-        // CF coordinates: dimension order is (z, y, x) or (y, x); axis a of [x, y, z].
-        let axis_names: Vec<&String> = dnames
-            .iter()
-            .take(if lens.len() == 2 { 2 } else { 3 })
-            .rev()
-            .collect();
-        let mut s = [1.0; 3];
-        let mut o = [0.0; 3];
-        let mut ok = axis_names.len() >= 2;
-        for (a, dn) in axis_names.iter().enumerate() {
-            match coordinate(&f, dn) {
-                Some(Ok((sa, oa))) => {
-                    s[a] = sa;
-                    o[a] = oa;
-                }
-                Some(Err(e)) => return Err(at(e)),
-                None => ok = false,
-            }
-        }
-        if ok {
-            if lens.len() == 2 {
-                s[2] = s[0];
-            }
-            spacing = Some(s);
-            origin = Some(o);
-        }
-    }
+    let (spacing, origin, periodic) = grid(&f, &v).map_err(at)?;
     let mut phases = Vec::new();
     let names = match v.attribute_value("phase_names").and_then(|r| r.ok()) {
         Some(AttributeValue::Strs(s)) => Some(s),
@@ -264,9 +230,6 @@ pub fn read_netcdf_variable(path: &Path, var: &str) -> Result<Volume, String> {
                 .collect();
         }
     }
-    let periodic = three(global("periodic"))
-        .map(|p| p.map(|x| x != 0.0))
-        .unwrap_or_default();
     let unit = attr_str(v.attribute_value("units"))
         .filter(|u| u != "1")
         .unwrap_or_default();
@@ -285,6 +248,53 @@ pub fn read_netcdf_variable(path: &Path, var: &str) -> Result<Volume, String> {
         data,
         phases,
     })
+}
+
+/// Three numbers of global attribute `k`.
+fn global3(f: &netcdf::File, k: &str) -> Option<[f64; 3]> {
+    attr_f64s(f.attribute(k).map(|a| a.value())).and_then(|v| <[f64; 3]>::try_from(v).ok())
+}
+
+/// The grid of variable `v` of `f` as the readers take it: the global `spacing` and
+/// `origin` attributes when present (grainpipe files), otherwise uniformly spaced CF
+/// coordinate variables named like the dimensions, converted to metres through their
+/// `units`; global `periodic`.
+pub(crate) fn grid(f: &netcdf::File, v: &netcdf::Variable) -> NcResult<StatedGrid> {
+    let (mut spacing, mut origin) = (global3(f, "spacing"), global3(f, "origin"));
+    if spacing.is_none() {
+        // CF coordinates: dimension order is (z, y, x) or (y, x); axis a of [x, y, z].
+        let dnames: Vec<String> = v.dimensions().iter().map(|d| d.name()).collect();
+        let ndims = dnames.len();
+        let axis_names: Vec<&String> = dnames
+            .iter()
+            .take(if ndims == 2 { 2 } else { 3 })
+            .rev()
+            .collect();
+        let mut s = [1.0; 3];
+        let mut o = [0.0; 3];
+        let mut ok = axis_names.len() >= 2;
+        for (a, dn) in axis_names.iter().enumerate() {
+            match coordinate(f, dn) {
+                Some(Ok((sa, oa))) => {
+                    s[a] = sa;
+                    o[a] = oa;
+                }
+                Some(Err(e)) => return Err(e),
+                None => ok = false,
+            }
+        }
+        if ok {
+            if ndims == 2 {
+                s[2] = s[0];
+            }
+            spacing = Some(s);
+            origin = Some(o);
+        }
+    }
+    let periodic = global3(f, "periodic")
+        .map(|p| p.map(|x| x != 0.0))
+        .unwrap_or_default();
+    Ok((spacing, origin, periodic))
 }
 
 /// (spacing, lower corner) in metres of a uniformly spaced coordinate variable.

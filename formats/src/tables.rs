@@ -144,10 +144,13 @@ pub fn write_csv(a: &Artifact, path: &Path, _prov: &Provenance) -> Result<(), St
                     let bond = bonds.get(&(c.i.min(c.j), c.i.max(c.j))).copied();
                     row(c.i, c.j, Some(c.gap), bond)
                 })
-                .chain(g.bonds.iter().enumerate().filter_map(|(k, b)| {
-                    (!contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))))
-                        .then(|| row(b[0], b[1], None, Some(k)))
-                }));
+                .chain(
+                    g.bonds
+                        .iter()
+                        .enumerate()
+                        .filter(|(_, b)| !contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))))
+                        .map(|(k, b)| row(b[0], b[1], None, Some(k))),
+                );
             write_csv_records(path, None, std::iter::once(head).chain(rows))
         }
         other => Err(format!(
@@ -405,7 +408,12 @@ pub fn read_contact_graph_json(path: &Path) -> Result<ContactGraph, String> {
             name.clone(),
             BodyAttribute {
                 unit: a["unit"].as_str().unwrap_or("").to_string(),
-                values: a["values"].as_array().into_iter().flatten().map(f).collect(),
+                values: a["values"]
+                    .as_array()
+                    .into_iter()
+                    .flatten()
+                    .map(f)
+                    .collect(),
             },
         );
     }

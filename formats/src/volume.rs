@@ -274,6 +274,10 @@ pub(crate) fn from_bytes<T: Le>(b: &[u8], little: bool) -> Vec<T> {
         .collect()
 }
 
+/// Spacing and origin (each if the file gives it) and periodic axes, as a reader derives
+/// them from a file's attributes: shared by the full readers and the header readers.
+pub(crate) type StatedGrid = (Option<[f64; 3]>, Option<[f64; 3]>, [bool; 3]);
+
 /// What an import preflight learns from a file header without reading the array.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Probe {

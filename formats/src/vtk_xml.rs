@@ -625,13 +625,9 @@ impl Node {
         }
         self.children.iter().find_map(|c| c.find(name))
     }
-}
 
-fn parse_xml(text: &str) -> Result<Node, String> {
-    use quick_xml::events::{BytesStart, Event};
-    let mut reader = quick_xml::Reader::from_str(text);
-    let mut stack: Vec<Node> = vec![Node::default()];
-    let open = |e: &BytesStart| -> Result<Node, String> {
+    /// An element (name and attributes, no text or children yet) from its start tag.
+    pub fn open(e: &quick_xml::events::BytesStart) -> Result<Node, String> {
         let mut n = Node {
             name: e.name().as_ref().to_string(),
             ..Node::default()
@@ -644,7 +640,14 @@ fn parse_xml(text: &str) -> Result<Node, String> {
             n.attrs.push((a.key.as_ref().to_string(), v.into_owned()));
         }
         Ok(n)
-    };
+    }
+}
+
+fn parse_xml(text: &str) -> Result<Node, String> {
+    use quick_xml::events::Event;
+    let mut reader = quick_xml::Reader::from_str(text);
+    let mut stack: Vec<Node> = vec![Node::default()];
+    let open = Node::open;
     loop {
         match reader
             .read_event()
@@ -674,14 +677,128 @@ fn parse_xml(text: &str) -> Result<Node, String> {
     Ok(stack.pop().expect("root"))
 }
 
+/// How a VTK XML file encodes its binary arrays, from the `<VTKFile>` attributes.
+#[derive(Clone, Copy)]
+pub(crate) struct Encoding {
+    header_u64: bool,
+    compressed: bool,
+    pub little: bool,
+}
+
+impl Encoding {
+    /// The encoding the `<VTKFile>` element states (only zlib compression is supported).
+    pub fn of(vtk: &Node) -> Result<Self, String> {
+        let compressed = match vtk.attr("compressor") {
+            None | Some("") => false,
+            Some("vtkZLibDataCompressor") => true,
+            Some(c) => return Err(format!("compressor {c} is not supported (only zlib)")),
+        };
+        Ok(Encoding {
+            header_u64: vtk.attr("header_type") == Some("UInt64"),
+            compressed,
+            little: vtk.attr("byte_order") != Some("BigEndian"),
+        })
+    }
+
+    fn hsize(&self) -> usize {
+        if self.header_u64 {
+            8
+        } else {
+            4
+        }
+    }
+
+    fn header_value(&self, b: &[u8]) -> usize {
+        if self.header_u64 {
+            u64::from_bytes(b, self.little) as usize
+        } else {
+            u32::from_bytes(b, self.little) as usize
+        }
+    }
+
+    /// The payload of an array stored in its element (`ascii` or `binary`); appended arrays
+    /// need the file's appended block ([`VtkFile::array_payload`]).
+    pub fn inline_payload(&self, node: &Node) -> Result<Payload, String> {
+        let name = node.attr("Name").unwrap_or("?");
+        let ctx = |e: String| format!("array `{name}`: {e}");
+        match node.attr("format").unwrap_or("ascii") {
+            "ascii" => Ok(Payload::Ascii(
+                node.text.split_whitespace().map(str::to_string).collect(),
+            )),
+            "binary" => {
+                let text: Vec<u8> = node
+                    .text
+                    .bytes()
+                    .filter(|b| !b.is_ascii_whitespace())
+                    .collect();
+                self.binary_inline(&text).map(Payload::Bytes).map_err(ctx)
+            }
+            f => Err(ctx(format!("unknown format `{f}`"))),
+        }
+    }
+
+    fn binary_inline(&self, text: &[u8]) -> Result<Vec<u8>, String> {
+        let hs = self.hsize();
+        let dec = |t: &[u8]| B64.decode(t).map_err(|e| format!("bad base64: {e}"));
+        if !self.compressed {
+            // Header and data are one base64 stream.
+            let all = dec(text)?;
+            let n = self.header_value(all.get(..hs).ok_or("truncated array")?);
+            return all
+                .get(hs..hs + n)
+                .map(|d| d.to_vec())
+                .ok_or_else(|| format!("array says {n} bytes but holds {}", all.len() - hs));
+        }
+        // Header and data are encoded separately; the header's length depends on its first
+        // entry (number of blocks).
+        let b64len = |bytes: usize| bytes.div_ceil(3) * 4;
+        let first = dec(text.get(..b64len(3 * hs)).ok_or("truncated header")?)?;
+        let nblocks = self.header_value(&first[..hs]);
+        let hlen = b64len((3 + nblocks) * hs);
+        let header = dec(text.get(..hlen).ok_or("truncated header")?)?;
+        let body = dec(&text[hlen..])?;
+        self.inflate(&header, &body)
+    }
+
+    fn inflate(&self, header: &[u8], body: &[u8]) -> Result<Vec<u8>, String> {
+        let hs = self.hsize();
+        let h: Vec<usize> = header
+            .chunks_exact(hs)
+            .map(|c| self.header_value(c))
+            .collect();
+        let (nblocks, bsize, last) = (h[0], h[1], h[2]);
+        let mut out = Vec::with_capacity(nblocks * bsize);
+        let mut pos = 0;
+        for k in 0..nblocks {
+            let c = h[3 + k];
+            let chunk = body.get(pos..pos + c).ok_or("compressed data truncated")?;
+            pos += c;
+            let before = out.len();
+            flate2::read::ZlibDecoder::new(chunk)
+                .read_to_end(&mut out)
+                .map_err(|e| format!("zlib: {e}"))?;
+            let expect = if k + 1 == nblocks && last != 0 {
+                last
+            } else {
+                bsize
+            };
+            if out.len() - before != expect {
+                return Err(format!(
+                    "block {k} inflates to {} bytes, header says {expect}",
+                    out.len() - before
+                ));
+            }
+        }
+        Ok(out)
+    }
+}
+
 /// A parsed VTK XML file with its appended-data block, if any.
 pub(crate) struct VtkFile {
     pub root: Node,
     appended: Vec<u8>,
     appended_raw: bool,
-    header_u64: bool,
-    compressed: bool,
-    little: bool,
+    enc: Encoding,
 }
 
 impl VtkFile {
@@ -717,13 +834,7 @@ impl VtkFile {
         let vtk = root
             .find("VTKFile")
             .ok_or("no <VTKFile> element: not a VTK XML file")?;
-        let header_u64 = vtk.attr("header_type") == Some("UInt64");
-        let compressed = match vtk.attr("compressor") {
-            None | Some("") => false,
-            Some("vtkZLibDataCompressor") => true,
-            Some(c) => return Err(format!("compressor {c} is not supported (only zlib)")),
-        };
-        let little = vtk.attr("byte_order") != Some("BigEndian");
+        let enc = Encoding::of(vtk)?;
         Ok(VtkFile {
             root,
             appended: appended
@@ -732,145 +843,99 @@ impl VtkFile {
                 .filter(|b| appended_raw || !b.is_ascii_whitespace())
                 .collect(),
             appended_raw,
-            header_u64,
-            compressed,
-            little,
+            enc,
         })
-    }
-
-    fn hsize(&self) -> usize {
-        if self.header_u64 {
-            8
-        } else {
-            4
-        }
-    }
-
-    fn header_value(&self, b: &[u8]) -> usize {
-        if self.header_u64 {
-            u64::from_bytes(b, self.little) as usize
-        } else {
-            u32::from_bytes(b, self.little) as usize
-        }
     }
 
     /// The bytes of a binary or appended array (decompressed, in the file's byte order), or
     /// the whitespace-separated tokens of an ascii array.
     pub fn array_payload(&self, node: &Node) -> Result<Payload, String> {
+        if node.attr("format") != Some("appended") {
+            return self.enc.inline_payload(node);
+        }
         let name = node.attr("Name").unwrap_or("?");
         let ctx = |e: String| format!("array `{name}`: {e}");
-        match node.attr("format").unwrap_or("ascii") {
-            "ascii" => Ok(Payload::Ascii(
-                node.text.split_whitespace().map(str::to_string).collect(),
-            )),
-            "binary" => {
-                let text: Vec<u8> = node
-                    .text
-                    .bytes()
-                    .filter(|b| !b.is_ascii_whitespace())
-                    .collect();
-                self.binary_inline(&text).map(Payload::Bytes).map_err(ctx)
-            }
-            "appended" => {
-                let off: usize = node
-                    .attr("offset")
-                    .and_then(|o| o.parse().ok())
-                    .ok_or_else(|| ctx("appended array without offset".into()))?;
-                self.appended_at(off).map(Payload::Bytes).map_err(ctx)
-            }
-            f => Err(ctx(format!("unknown format `{f}`"))),
-        }
-    }
-
-    fn binary_inline(&self, text: &[u8]) -> Result<Vec<u8>, String> {
-        let hs = self.hsize();
-        let dec = |t: &[u8]| B64.decode(t).map_err(|e| format!("bad base64: {e}"));
-        if !self.compressed {
-            // Header and data are one base64 stream.
-            let all = dec(text)?;
-            let n = self.header_value(all.get(..hs).ok_or("truncated array")?);
-            return all
-                .get(hs..hs + n)
-                .map(|d| d.to_vec())
-                .ok_or_else(|| format!("array says {n} bytes but holds {}", all.len() - hs));
-        }
-        // Header and data are encoded separately; the header's length depends on its first
-        // entry (number of blocks).
-        let b64len = |bytes: usize| bytes.div_ceil(3) * 4;
-        let first = dec(text.get(..b64len(3 * hs)).ok_or("truncated header")?)?;
-        let nblocks = self.header_value(&first[..hs]);
-        let hlen = b64len((3 + nblocks) * hs);
-        let header = dec(text.get(..hlen).ok_or("truncated header")?)?;
-        let body = dec(&text[hlen..])?;
-        self.inflate(&header, &body)
+        let off: usize = node
+            .attr("offset")
+            .and_then(|o| o.parse().ok())
+            .ok_or_else(|| ctx("appended array without offset".into()))?;
+        self.appended_at(off).map(Payload::Bytes).map_err(ctx)
     }
 
     fn appended_at(&self, off: usize) -> Result<Vec<u8>, String> {
-        let hs = self.hsize();
+        let enc = &self.enc;
+        let hs = enc.hsize();
         if !self.appended_raw {
             // base64 appended data: each array is its own stream(s) starting at `off`.
             let tail = self
                 .appended
                 .get(off..)
                 .ok_or("offset past the appended data")?;
-            return self.binary_inline(tail);
+            return enc.binary_inline(tail);
         }
         let a = &self.appended;
         let at = |i: usize, n: usize| a.get(i..i + n).ok_or("appended data truncated");
-        if !self.compressed {
-            let n = self.header_value(at(off, hs)?);
+        if !enc.compressed {
+            let n = enc.header_value(at(off, hs)?);
             return Ok(at(off + hs, n)?.to_vec());
         }
-        let nblocks = self.header_value(at(off, hs)?);
+        let nblocks = enc.header_value(at(off, hs)?);
         let header = at(off, (3 + nblocks) * hs)?;
         let csum: usize = (0..nblocks)
-            .map(|k| self.header_value(&header[(3 + k) * hs..(4 + k) * hs]))
+            .map(|k| enc.header_value(&header[(3 + k) * hs..(4 + k) * hs]))
             .sum();
         let body = at(off + header.len(), csum)?;
-        self.inflate(header, body)
-    }
-
-    fn inflate(&self, header: &[u8], body: &[u8]) -> Result<Vec<u8>, String> {
-        let hs = self.hsize();
-        let h: Vec<usize> = header
-            .chunks_exact(hs)
-            .map(|c| self.header_value(c))
-            .collect();
-        let (nblocks, bsize, last) = (h[0], h[1], h[2]);
-        let mut out = Vec::with_capacity(nblocks * bsize);
-        let mut pos = 0;
-        for k in 0..nblocks {
-            let c = h[3 + k];
-            let chunk = body.get(pos..pos + c).ok_or("compressed data truncated")?;
-            pos += c;
-            let before = out.len();
-            flate2::read::ZlibDecoder::new(chunk)
-                .read_to_end(&mut out)
-                .map_err(|e| format!("zlib: {e}"))?;
-            let expect = if k + 1 == nblocks && last != 0 {
-                last
-            } else {
-                bsize
-            };
-            if out.len() - before != expect {
-                return Err(format!(
-                    "block {k} inflates to {} bytes, header says {expect}",
-                    out.len() - before
-                ));
-            }
-        }
-        Ok(out)
+        enc.inflate(header, body)
     }
 
     /// Decodes an array as numbers of its declared type.
     pub fn array_values(&self, node: &Node) -> Result<VolumeData, String> {
+        let payload = self.array_payload(node)?;
+        payload.values(node, self.enc.little)
+    }
+
+    /// Decodes a `String` array.
+    pub fn string_values(&self, node: &Node) -> Result<Vec<String>, String> {
+        let bytes: Vec<u8> = match self.array_payload(node)? {
+            Payload::Bytes(b) => b,
+            Payload::Ascii(t) => t
+                .iter()
+                .map(|s| s.parse::<u8>())
+                .collect::<Result<_, _>>()
+                .map_err(|e| format!("string array: {e}"))?,
+        };
+        let mut v: Vec<String> = bytes
+            .split(|&b| b == 0)
+            .map(|s| String::from_utf8_lossy(s).into_owned())
+            .collect();
+        v.pop(); // after the last terminator
+        Ok(v)
+    }
+
+    /// Field-data arrays by name.
+    pub fn field_array(&self, name: &str) -> Option<&Node> {
+        self.root
+            .find("FieldData")?
+            .children
+            .iter()
+            .find(|c| c.attr("Name") == Some(name))
+    }
+}
+
+pub(crate) enum Payload {
+    Bytes(Vec<u8>),
+    Ascii(Vec<String>),
+}
+
+impl Payload {
+    /// The values of array `node` (its `type` and `Name`), from its payload in byte order
+    /// `little`.
+    pub fn values(&self, node: &Node, little: bool) -> Result<VolumeData, String> {
         let ty = node.attr("type").unwrap_or("Float32");
         let name = node.attr("Name").unwrap_or("?");
-        let payload = self.array_payload(node)?;
-        let little = self.little;
         macro_rules! conv {
             ($t:ty, $variant:ident, $map:expr) => {{
-                let v: Vec<$t> = match &payload {
+                let v: Vec<$t> = match self {
                     Payload::Bytes(b) => from_bytes::<$t>(b, little),
                     Payload::Ascii(toks) => toks
                         .iter()
@@ -908,38 +973,6 @@ impl VtkFile {
             t => return Err(format!("array `{name}`: type {t} is not numeric")),
         })
     }
-
-    /// Decodes a `String` array.
-    pub fn string_values(&self, node: &Node) -> Result<Vec<String>, String> {
-        let bytes: Vec<u8> = match self.array_payload(node)? {
-            Payload::Bytes(b) => b,
-            Payload::Ascii(t) => t
-                .iter()
-                .map(|s| s.parse::<u8>())
-                .collect::<Result<_, _>>()
-                .map_err(|e| format!("string array: {e}"))?,
-        };
-        let mut v: Vec<String> = bytes
-            .split(|&b| b == 0)
-            .map(|s| String::from_utf8_lossy(s).into_owned())
-            .collect();
-        v.pop(); // after the last terminator
-        Ok(v)
-    }
-
-    /// Field-data arrays by name.
-    pub fn field_array(&self, name: &str) -> Option<&Node> {
-        self.root
-            .find("FieldData")?
-            .children
-            .iter()
-            .find(|c| c.attr("Name") == Some(name))
-    }
-}
-
-pub(crate) enum Payload {
-    Bytes(Vec<u8>),
-    Ascii(Vec<String>),
 }
 
 fn find(h: &[u8], n: &[u8]) -> Option<usize> {
@@ -949,7 +982,11 @@ fn rfind(h: &[u8], n: &[u8]) -> Option<usize> {
     h.windows(n.len()).rposition(|w| w == n)
 }
 
-fn parse_nums<const N: usize>(s: Option<&str>, what: &str) -> Result<Option<[f64; N]>, String> {
+/// `N` whitespace-separated numbers of attribute `what` (value `s`), if it is given.
+pub(crate) fn parse_nums<const N: usize>(
+    s: Option<&str>,
+    what: &str,
+) -> Result<Option<[f64; N]>, String> {
     let Some(s) = s else { return Ok(None) };
     let v: Vec<f64> = s
         .split_whitespace()
@@ -959,6 +996,111 @@ fn parse_nums<const N: usize>(s: Option<&str>, what: &str) -> Result<Option<[f64
     v.try_into()
         .map(Some)
         .map_err(|_| format!("{what} `{s}` needs {N} numbers"))
+}
+
+/// The grid an `<ImageData>` element states: its whole extent, spacing and origin.
+pub(crate) struct ImageGrid {
+    ext: [i64; 6],
+    spacing: Option<[f64; 3]>,
+    origin: Option<[f64; 3]>,
+}
+
+impl ImageGrid {
+    /// Reads `WholeExtent`, `Spacing` and `Origin`; a `Direction` must be the identity.
+    pub fn of(img: &Node) -> Result<Self, String> {
+        let ext: [f64; 6] =
+            parse_nums(img.attr("WholeExtent"), "WholeExtent")?.ok_or("no WholeExtent")?;
+        let spacing = parse_nums::<3>(img.attr("Spacing"), "Spacing")?;
+        let origin = parse_nums::<3>(img.attr("Origin"), "Origin")?;
+        if let Some(d) = parse_nums::<9>(img.attr("Direction"), "Direction")? {
+            let id = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
+            if d.iter().zip(id).any(|(a, b)| (a - b).abs() > 1e-12) {
+                return Err("rotated images (Direction not identity) are not supported".into());
+            }
+        }
+        Ok(ImageGrid {
+            ext: ext.map(|e| e as i64),
+            spacing,
+            origin,
+        })
+    }
+
+    /// Dims, spacing and origin of the voxels of a cell-data (or point-data) array: point
+    /// data are voxel centres (dims = points, origin moved back by half a voxel).
+    pub fn voxels(&self, is_cell: bool) -> ([usize; 3], Option<[f64; 3]>, Option<[f64; 3]>) {
+        let (ext, spacing, mut origin) = (self.ext, self.spacing, self.origin);
+        let span = |a: usize| (ext[2 * a + 1] - ext[2 * a]).max(0) as usize;
+        let mut dims = [span(0), span(1), span(2)];
+        if is_cell {
+            // a 2-D image has a zero-thickness extent along z and one cell layer
+            dims = dims.map(|d| d.max(1));
+        } else {
+            dims = dims.map(|d| d + 1);
+            if let (Some(o), Some(s)) = (origin.as_mut(), spacing) {
+                for a in 0..3 {
+                    o[a] -= 0.5 * s[a];
+                }
+            }
+        }
+        if let Some(o) = origin.as_mut() {
+            // a piece extent starting above 0 shifts the first voxel
+            for a in 0..3 {
+                o[a] += ext[2 * a] as f64 * spacing.map(|s| s[a]).unwrap_or(0.0);
+            }
+        }
+        (dims, spacing, origin)
+    }
+}
+
+/// The array a `.vti` reader takes from a piece's cell and point arrays: the one named
+/// `want` (a cell array before a point array), else the first cell array, else the first
+/// point array; with "is cell data".
+pub(crate) fn choose_array<'a, C, P>(
+    cells: C,
+    points: P,
+    want: Option<&str>,
+) -> Option<(&'a Node, bool)>
+where
+    C: IntoIterator<Item = &'a Node>,
+    P: IntoIterator<Item = &'a Node>,
+{
+    let named = |a: &&Node| want.is_none() || a.attr("Name") == want;
+    let mut cells = cells.into_iter().filter(named);
+    let mut points = points.into_iter().filter(named);
+    cells
+        .next()
+        .map(|a| (a, true))
+        .or_else(|| points.next().map(|a| (a, false)))
+}
+
+/// The error of a `.vti` reader that finds no array to take.
+pub(crate) fn no_array_error<'a>(
+    array: Option<&str>,
+    names: impl Iterator<Item = &'a str>,
+) -> String {
+    let names: Vec<&str> = names.collect();
+    format!(
+        "no array {} (arrays: {names:?})",
+        array.map(|a| format!("`{a}`")).unwrap_or_default()
+    )
+}
+
+/// `NumberOfComponents` of a data array (1 when not stated).
+pub(crate) fn array_components(node: &Node) -> usize {
+    node.attr("NumberOfComponents")
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(1)
+}
+
+/// Bytes per value of a numeric VTK type.
+pub(crate) fn vtk_type_size(t: &str) -> Option<usize> {
+    Some(match t {
+        "Int8" | "UInt8" => 1,
+        "Int16" | "UInt16" => 2,
+        "Int32" | "UInt32" | "Float32" => 4,
+        "Int64" | "UInt64" | "Float64" => 8,
+        _ => return None,
+    })
 }
 
 /// Reads one array of a `.vti` as a [`Volume`]: `array` by name, or else the active cell
@@ -971,20 +1113,7 @@ pub fn read_vti(path: &Path, array: Option<&str>) -> Result<Volume, String> {
         .root
         .find("ImageData")
         .ok_or_else(|| at("no <ImageData>: not a .vti image".into()))?;
-    let ext: [f64; 6] = parse_nums(img.attr("WholeExtent"), "WholeExtent")
-        .map_err(at)?
-        .ok_or_else(|| at("no WholeExtent".into()))?;
-    let ext = ext.map(|e| e as i64);
-    let spacing = parse_nums::<3>(img.attr("Spacing"), "Spacing").map_err(at)?;
-    let mut origin = parse_nums::<3>(img.attr("Origin"), "Origin").map_err(at)?;
-    if let Some(d) = parse_nums::<9>(img.attr("Direction"), "Direction").map_err(at)? {
-        let id = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
-        if d.iter().zip(id).any(|(a, b)| (a - b).abs() > 1e-12) {
-            return Err(at(
-                "rotated images (Direction not identity) are not supported".into(),
-            ));
-        }
-    }
+    let grid = ImageGrid::of(img).map_err(at)?;
     let piece = img.child("Piece").ok_or_else(|| at("no <Piece>".into()))?;
     if img.children.iter().filter(|c| c.name == "Piece").count() > 1 {
         return Err(at("multi-piece images are not supported".into()));
@@ -1005,59 +1134,17 @@ pub fn read_vti(path: &Path, array: Option<&str>) -> Result<Volume, String> {
         .child("CellData")
         .and_then(|c| c.attr("Scalars"))
         .map(str::to_string);
-    let pick = |want: &str| -> Option<(&Node, bool)> {
-        cells
-            .iter()
-            .find(|a| a.attr("Name") == Some(want))
-            .map(|a| (*a, true))
-            .or_else(|| {
-                points
-                    .iter()
-                    .find(|a| a.attr("Name") == Some(want))
-                    .map(|a| (*a, false))
-            })
-    };
-    let (node, is_cell) = match array.or(active.as_deref()) {
-        Some(name) => pick(name),
-        None => cells
-            .first()
-            .map(|a| (*a, true))
-            .or_else(|| points.first().map(|a| (*a, false))),
-    }
+    let (node, is_cell) = choose_array(
+        cells.iter().copied(),
+        points.iter().copied(),
+        array.or(active.as_deref()),
+    )
     .ok_or_else(|| {
-        let names: Vec<&str> = cells
-            .iter()
-            .chain(&points)
-            .filter_map(|a| a.attr("Name"))
-            .collect();
-        at(format!(
-            "no array {} (arrays: {names:?})",
-            array.map(|a| format!("`{a}`")).unwrap_or_default()
-        ))
+        let names = cells.iter().chain(&points).filter_map(|a| a.attr("Name"));
+        at(no_array_error(array, names))
     })?;
-    let span = |a: usize| (ext[2 * a + 1] - ext[2 * a]).max(0) as usize;
-    let mut dims = [span(0), span(1), span(2)];
-    if is_cell {
-        // a 2-D image has a zero-thickness extent along z and one cell layer
-        dims = dims.map(|d| d.max(1));
-    } else {
-        dims = dims.map(|d| d + 1);
-        if let (Some(o), Some(s)) = (origin.as_mut(), spacing) {
-            for a in 0..3 {
-                o[a] -= 0.5 * s[a];
-            }
-        }
-    }
-    if let Some(o) = origin.as_mut() {
-        // a piece extent starting above 0 shifts the first voxel
-        for a in 0..3 {
-            o[a] += ext[2 * a] as f64 * spacing.map(|s| s[a]).unwrap_or(0.0);
-        }
-    }
-    let components: usize = node
-        .attr("NumberOfComponents")
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(1);
+    let (dims, spacing, origin) = grid.voxels(is_cell);
+    let components = array_components(node);
     let data = f.array_values(node).map_err(at)?;
     let expect = dims.iter().product::<usize>() * components;
     if data.len() != expect {
@@ -1164,13 +1251,8 @@ pub fn probe_vti(path: &Path, array: Option<&str>) -> Result<Probe, String> {
                                 .and_then(|c| c.parse().ok())
                                 .unwrap_or(1);
                             let dtype = attr(e, "type").unwrap_or("Float32".into());
-                            let elem_bytes = match dtype.as_str() {
-                                "Int8" | "UInt8" => 1,
-                                "Int16" | "UInt16" => 2,
-                                "Int32" | "UInt32" | "Float32" => 4,
-                                "Int64" | "UInt64" | "Float64" => 8,
-                                t => return Err(at(&format!("array type {t} is not numeric"))),
-                            };
+                            let elem_bytes = vtk_type_size(&dtype)
+                                .ok_or_else(|| at(&format!("array type {dtype} is not numeric")))?;
                             if let (false, Some(o), Some(s)) = (*cell, origin.as_mut(), spacing) {
                                 for a in 0..3 {
                                     o[a] -= 0.5 * s[a];
@@ -1325,8 +1407,12 @@ mod tests {
         // an attribute with the wrong length is refused
         let mut short = g.clone();
         short.bond_attributes[0].values.pop();
-        let e = write_vtp(&Artifact::ContactGraph(short), &path, &Provenance::default())
-            .unwrap_err();
+        let e = write_vtp(
+            &Artifact::ContactGraph(short),
+            &path,
+            &Provenance::default(),
+        )
+        .unwrap_err();
         assert!(e.contains("`stretch` has 1 values for 2 bonds"), "{e}");
         // a pair past the positions is refused
         let mut bad = g;

@@ -29,7 +29,10 @@ fn editing_an_imported_file_invalidates_the_cache() {
         raw.display().to_string()
     );
     let fraction = |r: &grainpipe_core::engine::RunResult| {
-        r.artifact("img.image").as_phase_image().unwrap().fraction(1)
+        r.artifact("img.image")
+            .as_phase_image()
+            .unwrap()
+            .fraction(1)
     };
     let first = run(&yaml, &cache);
     assert!(!first.stats["img"].from_cache);
@@ -41,6 +44,9 @@ fn editing_an_imported_file_invalidates_the_cache() {
     let half: Vec<u8> = (0..64).map(|i| u8::from(i % 2 == 0)).collect();
     std::fs::write(&raw, &half).unwrap();
     let edited = run(&yaml, &cache);
-    assert!(!edited.stats["img"].from_cache, "a stale cache entry was served");
+    assert!(
+        !edited.stats["img"].from_cache,
+        "a stale cache entry was served"
+    );
     assert_eq!(fraction(&edited), 0.5);
 }
