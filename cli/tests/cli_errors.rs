@@ -215,3 +215,47 @@ fn output_not_selected_by_parameters_is_refused_before_running() {
     assert_eq!(code, 0, "{err}");
     assert!(dir.path().join("out/f.vti").exists());
 }
+
+#[test]
+fn validate_prints_each_steps_grid_box_and_memory() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let (code, out, err) = pipe(&["validate", "pipelines/spheres.yaml"], &root);
+    assert_eq!(code, 0, "{err}");
+    // 400 um box, 25 um spheres at 20 voxels per diameter: 160^3 voxels of 2.5 um, periodic.
+    assert!(
+        out.contains(
+            "image: PhaseImage (grid 160x160x160 of 2.5000 x 2.5000 x 2.5000 um, periodic in xyz)"
+        ),
+        "{out}"
+    );
+    assert!(
+        out.contains("packing: Packing (box 400.0 x 400.0 x 400.0 um"),
+        "{out}"
+    );
+    assert!(out.contains("estimated memory:"), "{out}");
+}
+
+#[test]
+fn describe_json_and_schema_are_machine_readable() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let (code, out, err) = pipe(&["describe", "packing.rsa", "--json"], &root);
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let size = v["params"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "size")
+        .unwrap();
+    assert_eq!(size["type"], "[length, length, length]");
+    assert_eq!(size["unit"], "m");
+    assert_eq!(size["default"], serde_json::json!([5e-4, 5e-4, 5e-4]));
+    assert_eq!(v["with_schema"]["additionalProperties"], false);
+    let (code, out, _) = pipe(&["schema"], &root);
+    assert_eq!(code, 0);
+    let s: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let ids = s["properties"]["stages"]["items"]["properties"]["use"]["enum"]
+        .as_array()
+        .unwrap();
+    assert!(ids.iter().any(|i| i == "mcm.stacked"));
+}
