@@ -177,10 +177,11 @@ impl<D: Dim> ParamType for Q<D> {
 impl<T: ParamType, const N: usize> ParamType for [T; N] {
     fn type_name() -> String {
         let t = T::type_name();
-        if N <= 3 {
+        // "[length, length, length]" shows the YAML shape; longer words read better once.
+        if N <= 3 && !t.contains(' ') {
             format!("[{}]", vec![t; N].join(", "))
         } else {
-            format!("list of {N} {t}")
+            format!("list of {N}: {t}")
         }
     }
     fn unit() -> &'static str {
