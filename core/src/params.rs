@@ -36,6 +36,30 @@ pub trait Params:
 {
     /// Every parameter in declaration order (groups flattened in place).
     fn specs() -> Vec<ParamSpec>;
+    /// Deserializes the value of parameter `key` alone, into its declared type: `None` when
+    /// no field (of this struct or a flattened group) is called `key`, else the error as
+    /// (key path, message). Locates errors that serde reports without a path (inside a
+    /// flattened group).
+    fn check_value(key: &str, value: &Value) -> Option<Result<(), (String, String)>>;
+}
+
+/// Deserializes one parameter value into `T` (used by `#[params]`); the error names the
+/// path inside the value, e.g. `radius.value`.
+pub fn check_field<T: serde::de::DeserializeOwned>(
+    key: &str,
+    value: &Value,
+) -> Result<(), (String, String)> {
+    serde_path_to_error::deserialize::<_, T>(value)
+        .map(|_| ())
+        .map_err(|e| {
+            let path = e.path().to_string();
+            let path = if path == "." || path.is_empty() {
+                key.to_string()
+            } else {
+                format!("{key}.{path}")
+            };
+            (path, e.into_inner().to_string())
+        })
 }
 
 /// A type a parameter can have: how `pipe describe` and the JSON Schema name it.

@@ -363,16 +363,21 @@ impl<T: TypedStage> Typed<T> {
         let full = serde_json::Value::Object(full);
         serde_path_to_error::deserialize(&full).map_err(|e| {
             let path = e.path().to_string();
-            let inner = e.into_inner().to_string();
-            let key = if path == "." || path.is_empty() {
-                // serde reports unknown fields at the parent: take the field name from the message.
-                unknown_field_name(&inner).unwrap_or_default()
-            } else {
-                path
-            };
-            StageError::InvalidParam {
-                key,
-                message: inner,
+            let message = e.into_inner().to_string();
+            if !(path == "." || path.is_empty()) {
+                return StageError::InvalidParam { key: path, message };
+            }
+            // Inside a flattened group serde loses the path: find the value that fails alone.
+            let located = full.as_object().and_then(|m| {
+                m.iter()
+                    .find_map(|(k, v)| T::Params::check_value(k, v).and_then(Result::err))
+            });
+            match located {
+                Some((key, message)) => StageError::InvalidParam { key, message },
+                None => StageError::InvalidParam {
+                    key: unknown_field_name(&message).unwrap_or_default(),
+                    message,
+                },
             }
         })
     }

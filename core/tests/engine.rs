@@ -492,4 +492,12 @@ fn keys_of_a_flattened_group_are_accepted_and_typos_still_refused() {
     assert!(e.message.contains("unknown parameter `fial`"), "{e}");
     assert_eq!(e.help.as_deref(), Some("did you mean `fail`?"));
     assert_eq!(e.loc.unwrap().line, 5);
+    // A wrong type inside the group is located at its key, though serde reports it without
+    // a path (flattened fields are deserialized from a buffer).
+    let d = doc(
+        "name: t\nstages:\n  - id: s\n    use: test.source\n    with:\n      n: 2\n      fail: 3\n",
+    );
+    let e = plan(&d, &reg, &PlanOptions::default()).err().unwrap();
+    assert!(e.message.contains("parameter `fail`: invalid type"), "{e}");
+    assert_eq!(e.loc.unwrap().line, 7);
 }

@@ -139,6 +139,7 @@ fn expand_params(item: &mut ItemStruct) -> syn::Result<TokenStream2> {
     };
     let mut defaults = Vec::new();
     let mut specs = Vec::new();
+    let mut checks = Vec::new();
     for field in fields.named.iter_mut() {
         let opts = parse_field_options(&field.attrs)?;
         field.attrs.retain(|a| !a.path().is_ident("param"));
@@ -154,6 +155,11 @@ fn expand_params(item: &mut ItemStruct) -> syn::Result<TokenStream2> {
             field.attrs.push(syn::parse_quote!(#[serde(flatten)]));
             specs.push(quote! {
                 specs.extend(<#ty as ::grainpipe_core::params::Params>::specs());
+            });
+            checks.push(quote! {
+                if let Some(r) = <#ty as ::grainpipe_core::params::Params>::check_value(key, value) {
+                    return Some(r);
+                }
             });
             continue;
         }
@@ -174,6 +180,11 @@ fn expand_params(item: &mut ItemStruct) -> syn::Result<TokenStream2> {
             None => quote!(<#ty as ::grainpipe_core::params::ParamType>::unit().to_string()),
         };
         let reads_file = opts.reads_file;
+        checks.push(quote! {
+            if key == #name {
+                return Some(::grainpipe_core::params::check_field::<#ty>(#name, value));
+            }
+        });
         specs.push(quote! {
             specs.push(::grainpipe_core::params::ParamSpec {
                 name: #name,
@@ -207,6 +218,14 @@ fn expand_params(item: &mut ItemStruct) -> syn::Result<TokenStream2> {
                 #(#specs)*
                 ::grainpipe_core::params::fill_defaults(&mut specs, &Self::default());
                 specs
+            }
+
+            fn check_value(
+                key: &str,
+                value: &::grainpipe_core::serde_json::Value,
+            ) -> ::core::option::Option<::core::result::Result<(), (::std::string::String, ::std::string::String)>> {
+                #(#checks)*
+                None
             }
         }
     })
