@@ -745,23 +745,8 @@ fn unmarshal(kind: ArtifactKind, p: &PendingOutput) -> Result<Artifact, String> 
                     )
                 })?,
             };
-            if convention
-                .component_names(components, grid.dims[2])
-                .is_none()
-            {
-                return Err(format!(
-                    "{components} components do not fit the `{}` convention",
-                    convention.name()
-                ));
-            }
-            Artifact::Field(Field {
-                grid,
-                name: s("name"),
-                unit: s("unit"),
-                components,
-                convention,
-                data,
-            })
+            // Checks that the component count fits the convention.
+            Artifact::Field(Field::new(grid, s("name"), s("unit"), convention, data)?)
         }
         ArtifactKind::Table => {
             let cols = get("columns")?;

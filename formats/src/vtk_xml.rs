@@ -5,7 +5,7 @@
 //! (what VTK/ParaView write by default), so large images stay small. The reader also takes
 //! ascii, uncompressed binary and appended (raw or base64) arrays with UInt32/UInt64 headers.
 
-use crate::volume::{from_bytes, to_le_bytes, Le, Probe, Volume, VolumeData, VolumeRef};
+use crate::volume::{from_bytes, to_le_bytes, Le, Volume, VolumeData, VolumeRef};
 use base64::Engine;
 use grainpipe_core::fsutil::atomic_write;
 use grainpipe_core::{
@@ -1199,94 +1199,6 @@ pub fn read_vti(path: &Path, array: Option<&str>) -> Result<Volume, String> {
         data,
         phases,
     })
-}
-
-/// Checks a `.vti` header without reading its arrays (import preflight): streams the XML
-/// tags up to the chosen data array and returns the cell dims, the element type and the
-/// number of components.
-pub fn probe_vti(path: &Path, array: Option<&str>) -> Result<Probe, String> {
-    use quick_xml::events::Event;
-    let at = |e: &str| format!("{}: {e}", path.display());
-    let file = std::fs::File::open(path).map_err(|e| at(&e.to_string()))?;
-    let mut reader = quick_xml::Reader::from_reader(std::io::BufReader::new(file));
-    let mut buf = Vec::new();
-    let mut ext: Option<[f64; 6]> = None;
-    let (mut spacing, mut origin) = (None, None);
-    let mut section: Option<(bool, Option<String>)> = None; // (is cell data, active scalars)
-    let attr = |e: &quick_xml::events::BytesStart, k: &str| -> Option<String> {
-        e.try_get_attribute(k)
-            .ok()
-            .flatten()
-            .map(|a| a.value.to_string())
-    };
-    let mut seen_vtk = false;
-    loop {
-        let ev = reader
-            .read_event_into(&mut buf)
-            .map_err(|e| at(&format!("malformed XML: {e}")))?;
-        match ev {
-            Event::Start(ref e) | Event::Empty(ref e) => match e.name().as_ref() {
-                "VTKFile" => seen_vtk = true,
-                "ImageData" => {
-                    ext = parse_nums(attr(e, "WholeExtent").as_deref(), "WholeExtent")
-                        .map_err(|m| at(&m))?;
-                    spacing = parse_nums::<3>(attr(e, "Spacing").as_deref(), "Spacing")
-                        .map_err(|m| at(&m))?;
-                    origin = parse_nums::<3>(attr(e, "Origin").as_deref(), "Origin")
-                        .map_err(|m| at(&m))?;
-                }
-                "CellData" | "PointData" => {
-                    section = Some((e.name().as_ref() == "CellData", attr(e, "Scalars")))
-                }
-                "DataArray" => {
-                    if let Some((cell, active)) = &section {
-                        let name = attr(e, "Name");
-                        let want = array.map(str::to_string).or(active.clone());
-                        if want.is_none() || name == want {
-                            let ext = ext.ok_or_else(|| at("no ImageData WholeExtent"))?;
-                            let span = |a: usize| (ext[2 * a + 1] - ext[2 * a]).max(0.0) as usize;
-                            let dims =
-                                [0, 1, 2].map(|a| if *cell { span(a).max(1) } else { span(a) + 1 });
-                            let components = attr(e, "NumberOfComponents")
-                                .and_then(|c| c.parse().ok())
-                                .unwrap_or(1);
-                            let dtype = attr(e, "type").unwrap_or("Float32".into());
-                            let elem_bytes = vtk_type_size(&dtype)
-                                .ok_or_else(|| at(&format!("array type {dtype} is not numeric")))?;
-                            if let (false, Some(o), Some(s)) = (*cell, origin.as_mut(), spacing) {
-                                for a in 0..3 {
-                                    o[a] -= 0.5 * s[a];
-                                }
-                            }
-                            return Ok(Probe {
-                                dims,
-                                components,
-                                dtype,
-                                elem_bytes,
-                                spacing,
-                                origin,
-                            });
-                        }
-                    }
-                }
-                "AppendedData" => break,
-                _ => {}
-            },
-            Event::End(ref e) if matches!(e.name().as_ref(), "CellData" | "PointData") => {
-                section = None
-            }
-            Event::Eof => break,
-            _ => {}
-        }
-        buf.clear();
-    }
-    if !seen_vtk {
-        return Err(at("not a VTK XML file"));
-    }
-    Err(at(&match array {
-        Some(a) => format!("no data array `{a}`"),
-        None => "no data array".to_string(),
-    }))
 }
 
 #[cfg(test)]
