@@ -20,6 +20,10 @@ pub fn builtin_registry() -> Registry {
     grainpipe_sintering::register(&mut r);
     grainpipe_clumps::register(&mut r);
     grainpipe_mcm::register(&mut r);
+    grainpipe_binder::register(&mut r);
+    grainpipe_analysis::register(&mut r);
+    grainpipe_fft::register(&mut r);
+    grainpipe_stokes::register(&mut r);
     r
 }
 

@@ -268,6 +268,7 @@ dims! {
     SpecificEnergy = [2, 0, -2, 0, 0, 0, 0], "J/kg", "specific energy";
     Conductance = [2, 1, -3, -1, 0, 0, 0], "W/K", "thermal conductance";
     Viscosity = [-1, 1, -1, 0, 0, 0, 0], "Pa s", "dynamic viscosity";
+    ThermalConductivity = [1, 1, -3, -1, 0, 0, 0], "W/(m K)", "thermal conductivity";
 }
 
 /// A value of dimension `D`, stored in SI. Deserializes from a number (SI) or a unit string.
@@ -364,6 +365,13 @@ mod tests {
         assert!(close(q.value, 1.5e-3));
         let q = parse_quantity("3 min").unwrap();
         assert!(close(q.value, 180.0));
+        // Silica sand conducts about 1.4 W/(m K); 0.0014 W/(mm K) is the same.
+        let q = parse_quantity("0.0014 W/(mm K)").unwrap();
+        assert!(close(q.value, 1.4));
+        assert_eq!(q.dim, ThermalConductivity::DIM);
+        let q = parse_quantity("2 um^2").unwrap();
+        assert!(close(q.value, 2e-12));
+        assert_eq!(q.dim, Area::DIM);
     }
 
     #[test]

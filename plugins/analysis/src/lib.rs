@@ -1,0 +1,4 @@
+//! grainpipe-analysis: image analysis.
+
+/// Adds this crate's stages.
+pub fn register(_r: &mut grainpipe_core::Registry) {}
