@@ -8,6 +8,7 @@ pub mod model;
 pub mod params;
 pub mod pipeline;
 pub mod plugin_host;
+pub mod raster;
 pub mod registry;
 pub mod spatial;
 pub mod stage;

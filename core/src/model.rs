@@ -18,6 +18,19 @@ pub struct Grid {
 }
 
 impl Grid {
+    /// The grid of voxels of edge about `voxel` that tiles the box `[min, max]` exactly: the
+    /// count per axis is rounded and the spacing adjusted to it.
+    pub fn tiling(min: [f64; 3], max: [f64; 3], periodic: [bool; 3], voxel: f64) -> Grid {
+        let size = [0, 1, 2].map(|a| max[a] - min[a]);
+        let dims = [0, 1, 2].map(|a| ((size[a] / voxel).round() as usize).max(1));
+        Grid {
+            dims,
+            spacing: [0, 1, 2].map(|a| size[a] / dims[a] as f64),
+            origin: min,
+            periodic,
+        }
+    }
+
     pub fn voxel_count(&self) -> usize {
         self.dims.iter().product()
     }

@@ -1,4 +1,16 @@
-//! grainpipe-binder: level-set and closing binders.
+//! grainpipe-binder: three-phase sand / binder / pore images from packings. The level-set
+//! binder of Donval et al. (2025), section 2.3, and the morphological closing it replaces
+//! (Schneider et al. 2018) as the baseline. See docs/stages/binder.md.
 
-/// Adds this crate's stages.
-pub fn register(_r: &mut grainpipe_core::Registry) {}
+pub mod closing;
+mod common;
+pub mod components;
+pub mod edt;
+pub mod levelset;
+pub mod smooth_union;
+
+/// Adds `binder.levelset` and `binder.closing`.
+pub fn register(r: &mut grainpipe_core::Registry) {
+    r.add_stage(levelset::LevelSet);
+    r.add_stage(closing::Closing);
+}

@@ -31,19 +31,6 @@ pub struct Voxelize;
 /// Upper bound on voxels, so a typo in voxel_size is refused instead of swapping.
 const MAX_VOXELS: f64 = 4e9;
 
-fn grid_for(box_min: [f64; 3], box_max: [f64; 3], periodic: [bool; 3], voxel: f64) -> Grid {
-    let size = [0, 1, 2].map(|a| box_max[a] - box_min[a]);
-    let dims = [0, 1, 2].map(|a| ((size[a] / voxel).round() as usize).max(1));
-    // The spacing is adjusted so that the voxels tile the box exactly.
-    let spacing = [0, 1, 2].map(|a| size[a] / dims[a] as f64);
-    Grid {
-        dims,
-        spacing,
-        origin: box_min,
-        periodic,
-    }
-}
-
 fn voxel_size(p: &VoxelizeParams, mean_diameter: f64) -> f64 {
     if p.voxel_size.si() > 0.0 {
         p.voxel_size.si()
@@ -135,7 +122,7 @@ impl TypedStage for Voxelize {
                     Some(periodic) if exact => {
                         out = ArtifactMeta::on_grid(
                             ArtifactKind::PhaseImage,
-                            grid_for(lo, hi, periodic, v),
+                            Grid::tiling(lo, hi, periodic, v),
                         );
                         voxel = Some(v);
                     }
@@ -174,7 +161,7 @@ impl TypedStage for Voxelize {
                 format!("{n:.3e} voxels: use a larger voxel"),
             ));
         }
-        let grid = grid_for(d.min, d.max, d.periodic, v);
+        let grid = Grid::tiling(d.min, d.max, d.periodic, v);
         let spheres = packing.world_spheres();
         let (labels, coverage) =
             voxelize(&grid, &spheres, d.periodic, p.supersampling as usize, ctx)?;
