@@ -26,6 +26,8 @@ pub struct Candidate {
     pub lower_bound: f64,
     /// Index into the sphere list the raster was built from.
     pub sphere: u32,
+    /// The body the sphere belongs to.
+    pub body: u32,
 }
 
 impl Candidate {
@@ -270,6 +272,7 @@ impl SphereRaster {
                 radius: s.radius,
                 lower_bound: gap2.sqrt() - s.radius,
                 sphere: e.sphere,
+                body: s.body as u32,
             });
         }
         out.sort_by(|x, y| {
@@ -400,6 +403,57 @@ pub fn smallest_distances(
     n
 }
 
+/// Like [`smallest_distances`], but over bodies: each body counts once, with the smallest
+/// distance of its spheres (the exact outward distance to a clump, eq. 2.12-2.13 of Donval
+/// et al. 2025). `bodies` receives the body of each entry. Periodic images of one body are
+/// one body here, which matters only in cells smaller than a body plus the window.
+#[inline]
+pub fn smallest_body_distances(
+    cands: &[Candidate],
+    p: [f64; 3],
+    window: f64,
+    beyond: f64,
+    out: &mut [f64],
+    bodies: &mut [u32],
+) -> usize {
+    let k = out.len();
+    let mut n = 0usize;
+    for c in cands {
+        let kth = if n == k { out[k - 1] } else { f64::INFINITY };
+        let limit = if n == 0 {
+            beyond
+        } else {
+            kth.min(out[0] + window)
+        };
+        if c.lower_bound > limit {
+            break;
+        }
+        let d = c.distance(p);
+        let mut i = match bodies[..n].iter().position(|&b| b == c.body) {
+            Some(j) if d < out[j] => j,
+            Some(_) => continue,
+            None if n < k => {
+                n += 1;
+                n - 1
+            }
+            None if d < out[k - 1] => k - 1,
+            None => continue,
+        };
+        // Move the entry up to its place.
+        while i > 0 && out[i - 1] > d {
+            out[i] = out[i - 1];
+            bodies[i] = bodies[i - 1];
+            i -= 1;
+        }
+        out[i] = d;
+        bodies[i] = c.body;
+    }
+    while n > 1 && out[n - 1] > out[0] + window {
+        n -= 1;
+    }
+    n
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -413,10 +467,12 @@ mod tests {
         }
     }
 
-    /// Brute force over every sphere and every periodic image in -1..=1.
-    fn brute(g: &Grid, spheres: &[WorldSphere], p: [f64; 3]) -> Vec<f64> {
+    /// Brute force over every sphere and every periodic image in -1..=1; with `by_body`, the
+    /// smallest per body.
+    fn brute(g: &Grid, spheres: &[WorldSphere], p: [f64; 3], by_body: bool) -> Vec<f64> {
         let l = g.extent();
         let mut d = Vec::new();
+        let mut per_body = std::collections::BTreeMap::new();
         for s in spheres {
             let mut best = f64::INFINITY;
             for k in 0..27 {
@@ -430,6 +486,11 @@ mod tests {
                 best = best.min(q.sqrt() - s.radius);
             }
             d.push(best);
+            let e = per_body.entry(s.body).or_insert(f64::INFINITY);
+            *e = best.min(*e);
+        }
+        if by_body {
+            d = per_body.into_values().collect();
         }
         d.sort_by(f64::total_cmp);
         d
@@ -446,7 +507,7 @@ mod tests {
                 WorldSphere {
                     center: [f(1) * 1.2 - 0.1, f(2), f(3) * 1.1 - 0.05],
                     radius: 0.02 + 0.08 * f(4),
-                    body: i,
+                    body: i / 3,
                 }
             })
             .collect()
@@ -465,7 +526,7 @@ mod tests {
                     &mut vals,
                     || 0usize,
                     |bad, cands, _, p, _| {
-                        let want = brute(&g, &sph, p);
+                        let want = brute(&g, &sph, p, false);
                         let m = min_distance(cands, p, f64::NEG_INFINITY, reach);
                         if want[0] <= reach && (m - want[0]).abs() > 1e-12 {
                             eprintln!("min {p:?} {m} {:?}", &want[..3]);
@@ -487,6 +548,26 @@ mod tests {
                                     .any(|(a, b)| (a - b).abs() > 1e-12))
                         {
                             eprintln!("k {p:?} {:?} {expect:?}", &out[..n]);
+                            *bad += 1;
+                        }
+                        let want = brute(&g, &sph, p, true);
+                        let mut bodies = [0u32; 4];
+                        let n =
+                            smallest_body_distances(cands, p, 0.05, reach, &mut out, &mut bodies);
+                        let expect: Vec<f64> = want
+                            .iter()
+                            .copied()
+                            .filter(|&d| d <= want[0] + 0.05)
+                            .take(4)
+                            .collect();
+                        if want[0] + 0.05 <= reach
+                            && (n != expect.len()
+                                || out[..n]
+                                    .iter()
+                                    .zip(&expect)
+                                    .any(|(a, b)| (a - b).abs() > 1e-12))
+                        {
+                            eprintln!("bodies {p:?} {:?} {expect:?}", &out[..n]);
                             *bad += 1;
                         }
                     },

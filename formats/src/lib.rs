@@ -19,6 +19,7 @@ mod h5util;
 pub mod hdf5_plain;
 pub mod headers;
 pub mod import;
+pub mod import_packing;
 pub mod netcdf_io;
 pub mod raw;
 pub mod tables;
@@ -58,4 +59,5 @@ pub fn register(r: &mut Registry) {
     r.add_stage(import::ImportNetcdf);
     r.add_stage(import::ImportVti);
     r.add_stage(import::ImportTiff);
+    r.add_stage(import_packing::ImportPacking);
 }

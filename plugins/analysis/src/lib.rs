@@ -1,4 +1,15 @@
 //! grainpipe-analysis: image analysis.
+//!
+//! - `analysis.phases` ([`phases`]): per-phase volume fractions, specific surface, connected
+//!   components and percolation of a phase image.
+//! - Kernels free of framework types: [`components`] (6-connected labelling with periodic
+//!   winding) and [`surface`] (transition counts, Crofton and face-count surface estimates).
+
+pub mod components;
+pub mod phases;
+pub mod surface;
 
 /// Adds this crate's stages.
-pub fn register(_r: &mut grainpipe_core::Registry) {}
+pub fn register(r: &mut grainpipe_core::Registry) {
+    r.add_stage(phases::Phases);
+}

@@ -111,6 +111,7 @@ impl TypedStage for Closing {
         let spheres = packing.world_spheres();
         let spec = SmoothUnionSpec {
             k: 1,
+            per_body: false,
             supersampling: p.image.supersampling as usize,
             grain_voxels: p.image.exact_fractions.then_some(t.sand_voxels),
             binder: BinderTarget::Voxels(0),

@@ -2,14 +2,16 @@
 
 use crate::common::{report, targets, BinderImage, Passes};
 use crate::smooth_union::{
-    level_set, smooth_union, BinderError, BinderTarget, SmoothUnionSpec, MAX_K,
+    level_set, smooth_union, BinderError, BinderTarget, SmoothUnionSpec, Smoothing, MAX_K,
 };
 use grainpipe_core::units::{Length, Q};
+use grainpipe_core::ParamChoice;
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, ComponentConvention, Field, FieldData,
     Grid, InputMetas, Inputs, Outputs, PortSpec, Preflight, RunContext, StageError, StageInfo,
     TypedStage,
 };
+use serde::{Deserialize, Serialize};
 
 impl From<BinderError> for StageError {
     fn from(e: BinderError) -> Self {
@@ -19,6 +21,16 @@ impl From<BinderError> for StageError {
             | BinderError::Unreachable { .. } => StageError::failed(e.to_string()),
         }
     }
+}
+
+/// What the smooth minimum of eq. (2.15) runs over.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ParamChoice)]
+#[serde(rename_all = "snake_case")]
+pub enum SmoothOver {
+    /// The k nearest spheres of any grain.
+    Spheres,
+    /// The k nearest grains.
+    Grains,
 }
 
 #[params]
@@ -34,6 +46,12 @@ pub struct LevelSetParams {
     /// paper uses 5).
     #[param(default = 5, ty = "integer 2..16")]
     pub k: usize,
+    /// Smooth over the k nearest `spheres` (the paper: binder also fills the ridges between
+    /// the spheres of one clump and coats it) or the k nearest `grains` (each grain's exact
+    /// distance, the minimum over its spheres: binder only between grains, so a given
+    /// fraction makes wider bridges).
+    #[param(default = SmoothOver::Spheres)]
+    pub smooth_over: SmoothOver,
     /// Also output the smoothed level set (f32, metres, negative inside) as `level_set`.
     #[param(default = false)]
     pub level_set: bool,
@@ -140,15 +158,20 @@ impl TypedStage for LevelSet {
         let h = grid.spacing.iter().copied().fold(0.0, f64::max);
         let spec = SmoothUnionSpec {
             k: p.k,
+            per_body: p.smooth_over == SmoothOver::Grains,
             supersampling: p.image.supersampling as usize,
             grain_voxels: p.image.exact_fractions.then_some(t.sand_voxels),
             binder: match p.a {
                 Some(a) => BinderTarget::Scale(a.si()),
                 None => BinderTarget::Voxels(t.binder_voxels),
             },
-            // The search starts below a voxel and doubles: the bins' reach, and so the cost
-            // of a scan, grows with the bound (the paper's 2 % at 4 um needs a of 1.5 um).
-            initial_scale_bound: 0.5 * h,
+            // The search starts low and doubles: the bins' reach, and so the cost of a scan,
+            // grows with the bound. The paper's 2 % at 4 um needs a = 1.2 um over spheres
+            // (ridges and coatings fill first) and 7.7 um over grains (bridges only).
+            initial_scale_bound: match p.smooth_over {
+                SmoothOver::Spheres => 0.5 * h,
+                SmoothOver::Grains => (0.5 * h).max(0.03 * mean_diameter),
+            },
             max_scale: 0.5 * mean_diameter,
         };
         let passes = Passes::new(ctx, 4 + u64::from(p.level_set), &grid);
@@ -156,11 +179,16 @@ impl TypedStage for LevelSet {
             smooth_union::<StageError, _>(&grid, &spheres, &spec, &|d, n| passes.step(d, n))?;
         let a = result.scale;
         let field = if p.level_set {
-            let clamp = 0.25 * mean_diameter;
+            // The level set matters near its zero; further out it is clamped, which keeps
+            // the bins' reach (and the cost) small.
+            let clamp = 4.0 * h + a * (p.k as f64).ln();
             let values = level_set::<StageError, _>(
                 &grid,
                 &spheres,
-                p.k,
+                Smoothing {
+                    k: p.k,
+                    per_body: p.smooth_over == SmoothOver::Grains,
+                },
                 result.delta,
                 a,
                 clamp,

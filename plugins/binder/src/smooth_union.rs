@@ -17,15 +17,16 @@
 //! plus the sphere bins; the values near the selected rank are recomputed, not stored.
 
 use grainpipe_core::raster::{
-    min_distance, smallest_distances, Candidate, RasterError, SphereRaster,
+    min_distance, smallest_body_distances, smallest_distances, Candidate, RasterError, SphereRaster,
 };
 use grainpipe_core::{Grid, WorldSphere};
 
 /// Smallest distances combined in eq. (2.15) at most.
 pub const MAX_K: usize = 16;
 /// Spheres further than `TRUNCATION * a` beyond the nearest contribute less than
-/// e^-12 = 6e-6 of the nearest's weight to eq. (2.14) and are left out.
-const TRUNCATION: f64 = 12.0;
+/// e^-8 = 3.4e-4 of the nearest's weight to eq. (2.14) and are left out: with k = 5 terms
+/// that moves the level set by less than 0.002 a.
+const TRUNCATION: f64 = 8.0;
 /// Half-width of the band of radius corrections searched, in voxels.
 const BAND_VOXELS: f64 = 4.0;
 /// Sphere-block pairs allowed in the bins (8 bytes each: 2 GiB).
@@ -48,6 +49,9 @@ pub enum BinderTarget {
 pub struct SmoothUnionSpec {
     /// Distances combined by eq. (2.15).
     pub k: usize,
+    /// Combine the distances to the k nearest bodies (each the exact distance to its union
+    /// of spheres) instead of the k nearest spheres.
+    pub per_body: bool,
     /// Sub-samples per axis in voxels cut by a grain surface.
     pub supersampling: usize,
     /// Grain voxels to hit by a uniform radius correction, or `None` to keep the radii.
@@ -213,28 +217,70 @@ fn scale_code(a: f64, cap: f64) -> u8 {
     ((a / cap * THRESHOLD_CODES).floor()).min(THRESHOLD_CODES - 1.0) as u8
 }
 
+/// Which distances eq. (2.15) combines: the `k` smallest, over spheres or over bodies.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Smoothing {
+    pub k: usize,
+    pub per_body: bool,
+}
+
+/// Scratch for the smallest distances at one point.
+pub struct Nearest {
+    d: [f64; MAX_K],
+    bodies: [u32; MAX_K],
+}
+
+impl Default for Nearest {
+    fn default() -> Self {
+        Nearest {
+            d: [0.0; MAX_K],
+            bodies: [0; MAX_K],
+        }
+    }
+}
+
+impl Nearest {
+    /// Fills the smallest distances (ascending) within `window` of the nearest; returns how
+    /// many. Nothing is searched beyond `beyond` when nothing closer was found.
+    fn find(
+        &mut self,
+        cands: &[Candidate],
+        p: [f64; 3],
+        sm: Smoothing,
+        window: f64,
+        beyond: f64,
+    ) -> usize {
+        if sm.per_body {
+            smallest_body_distances(
+                cands,
+                p,
+                window,
+                beyond,
+                &mut self.d[..sm.k],
+                &mut self.bodies[..sm.k],
+            )
+        } else {
+            smallest_distances(cands, p, window, beyond, &mut self.d[..sm.k])
+        }
+    }
+}
+
 /// Threshold `a*` at one point for radius correction `delta`: 0 inside a corrected sphere,
 /// `None` when above `cap`.
 fn point_threshold(
     cands: &[Candidate],
     p: [f64; 3],
-    k: usize,
+    sm: Smoothing,
     delta: f64,
     cap: f64,
-    dist: &mut [f64; MAX_K],
+    near: &mut Nearest,
 ) -> Option<f64> {
-    let ln_k = (k as f64).ln();
-    let n = smallest_distances(
-        cands,
-        p,
-        TRUNCATION * cap,
-        delta + cap * ln_k,
-        &mut dist[..k],
-    );
-    if n == 0 || dist[0] - delta > cap * ln_k {
+    let ln_k = (sm.k as f64).ln();
+    let n = near.find(cands, p, sm, TRUNCATION * cap, delta + cap * ln_k);
+    if n == 0 || near.d[0] - delta > cap * ln_k {
         return None;
     }
-    let e = &mut dist[..n];
+    let e = &mut near.d[..n];
     e.iter_mut().for_each(|d| *d -= delta);
     if e[0] <= 0.0 {
         return Some(0.0);
@@ -251,14 +297,14 @@ impl Sampler {
         &self,
         cands: &[Candidate],
         p: [f64; 3],
-        (k, delta, cap): (usize, f64, f64),
-        dist: &mut [f64; MAX_K],
+        (sm, delta, cap): (Smoothing, f64, f64),
+        near: &mut Nearest,
         buf: &mut Vec<f64>,
     ) -> Option<f64> {
-        let centre = point_threshold(cands, p, k, delta, cap, dist);
+        let centre = point_threshold(cands, p, sm, delta, cap, near);
         let s = self.supersampling;
-        let near = min_distance(cands, p, f64::NEG_INFINITY, delta + self.half_diagonal);
-        if s <= 1 || (near - delta).abs() > self.half_diagonal {
+        let surface = min_distance(cands, p, f64::NEG_INFINITY, delta + self.half_diagonal);
+        if s <= 1 || (surface - delta).abs() > self.half_diagonal {
             return centre;
         }
         buf.clear();
@@ -267,7 +313,7 @@ impl Sampler {
             let q: [f64; 3] = std::array::from_fn(|a| {
                 p[a] + ((sub[a] as f64 + 0.5) / s as f64 - 0.5) * self.spacing[a]
             });
-            buf.push(point_threshold(cands, q, k, delta, cap, dist).unwrap_or(f64::INFINITY));
+            buf.push(point_threshold(cands, q, sm, delta, cap, near).unwrap_or(f64::INFINITY));
         }
         buf.sort_by(f64::total_cmp);
         Some(buf[buf.len().div_ceil(2) - 1]).filter(|t| t.is_finite())
@@ -312,8 +358,11 @@ where
     E: BinderFailure,
     P: Fn(u64, u64) -> Result<(), E> + Sync,
 {
-    let k = spec.k.clamp(1, MAX_K);
-    let ln_k = (k as f64).ln();
+    let sm = Smoothing {
+        k: spec.k.clamp(1, MAX_K),
+        per_body: spec.per_body,
+    };
+    let ln_k = (sm.k as f64).ln();
     let sampler = Sampler::new(grid, spec.supersampling);
     let n = grid.voxel_count();
     let mut labels = vec![0u8; n];
@@ -398,12 +447,12 @@ where
             let raster = build(grain_reach.max(delta + a * (ln_k + TRUNCATION)))?;
             raster.scan(
                 &mut labels,
-                || (Vec::new(), [0.0; MAX_K]),
+                || (Vec::new(), Nearest::default()),
                 |(buf, dist), cands, _, p, code| {
                     *code = if is_grain(cands, p, *code, buf) {
                         1
                     } else if sampler
-                        .voxel_threshold(cands, p, (k, delta, a), dist, buf)
+                        .voxel_threshold(cands, p, (sm, delta, a), dist, buf)
                         .is_some_and(|t| t <= a)
                     {
                         2
@@ -430,7 +479,7 @@ where
         let raster = build(grain_reach.max(delta + cap * (ln_k + TRUNCATION)))?;
         let hists = raster.scan(
             &mut labels,
-            || (Vec::new(), [0.0; MAX_K], [0u64; 256]),
+            || (Vec::new(), Nearest::default(), [0u64; 256]),
             |(buf, dist, hist), cands, _, p, code| {
                 let grain = if first {
                     is_grain(cands, p, *code, buf)
@@ -440,7 +489,7 @@ where
                 *code = if grain {
                     GRAIN
                 } else {
-                    match sampler.voxel_threshold(cands, p, (k, delta, cap), dist, buf) {
+                    match sampler.voxel_threshold(cands, p, (sm, delta, cap), dist, buf) {
                         Some(t) => scale_code(t, cap),
                         None => NONE,
                     }
@@ -466,12 +515,12 @@ where
         };
         let vals = raster.scan(
             &mut labels,
-            || ([0.0; MAX_K], Vec::new(), Vec::new()),
+            || (Nearest::default(), Vec::new(), Vec::new()),
             |(dist, vals, buf), cands, _, p, code| {
                 if *code as usize == c {
                     vals.push(
                         sampler
-                            .voxel_threshold(cands, p, (k, delta, cap), dist, buf)
+                            .voxel_threshold(cands, p, (sm, delta, cap), dist, buf)
                             .unwrap_or(f64::INFINITY),
                     );
                 }
@@ -484,7 +533,7 @@ where
         // Pass 3: final labels.
         raster.scan(
             &mut labels,
-            || ([0.0; MAX_K], Vec::new()),
+            || (Nearest::default(), Vec::new()),
             |(dist, buf), cands, _, p, code| {
                 *code = match *code {
                     GRAIN => 1,
@@ -492,7 +541,7 @@ where
                     x if (x as usize) < c => 2,
                     x if x as usize == c
                         && sampler
-                            .voxel_threshold(cands, p, (k, delta, cap), dist, buf)
+                            .voxel_threshold(cands, p, (sm, delta, cap), dist, buf)
                             .is_some_and(|t| t <= a) =>
                     {
                         2
@@ -518,7 +567,7 @@ where
 pub fn level_set<E, P>(
     grid: &Grid,
     spheres: &[WorldSphere],
-    k: usize,
+    sm: Smoothing,
     delta: f64,
     a: f64,
     clamp: f64,
@@ -528,22 +577,25 @@ where
     E: BinderFailure,
     P: Fn(u64, u64) -> Result<(), E> + Sync,
 {
-    let k = k.clamp(1, MAX_K);
+    let sm = Smoothing {
+        k: sm.k.clamp(1, MAX_K),
+        ..sm
+    };
     let window = if a > 0.0 { TRUNCATION * a } else { 0.0 };
     let raster = SphereRaster::with_budget(grid, spheres, clamp + delta + window, MAX_BIN_ENTRIES)
         .map_err(|e| E::from(BinderError::Raster(e)))?;
     let mut field = vec![0f32; grid.voxel_count()];
     raster.scan(
         &mut field,
-        || [0.0; MAX_K],
+        Nearest::default,
         |dist, cands, _, p, v| {
-            let n = smallest_distances(cands, p, window, clamp + delta, &mut dist[..k]);
+            let n = dist.find(cands, p, sm, window, clamp + delta);
             let value = if n == 0 {
                 clamp
             } else if a > 0.0 {
-                log_sum_exp(a, &dist[..n]) - delta
+                log_sum_exp(a, &dist.d[..n]) - delta
             } else {
-                dist[0] - delta
+                dist.d[0] - delta
             };
             *v = value.clamp(-clamp, clamp) as f32;
         },

@@ -21,8 +21,20 @@ fn grid(p: &Packing, h: f64) -> Grid {
 }
 
 fn run(p: &Packing, h: f64, grain: Option<u64>, binder: BinderTarget, ss: usize) -> SmoothUnion {
+    run_over(p, h, grain, binder, ss, false)
+}
+
+fn run_over(
+    p: &Packing,
+    h: f64,
+    grain: Option<u64>,
+    binder: BinderTarget,
+    ss: usize,
+    per_body: bool,
+) -> SmoothUnion {
     let spec = SmoothUnionSpec {
         k: 5,
+        per_body,
         supersampling: ss,
         grain_voxels: grain,
         binder,
@@ -222,4 +234,48 @@ fn whole_period_shifts_give_the_same_image() {
     // only a voxel whose threshold ties the selected one.
     assert!(differ <= 2, "{differ} voxels differ");
     assert!((a.scale - b.scale).abs() < 1e-9 * a.scale);
+}
+
+#[test]
+fn smoothing_over_grains_puts_no_binder_inside_one_grain() {
+    // One grain made of two overlapping spheres (a clump): over spheres the smooth minimum
+    // fills the ridge where the spheres meet; over grains a lone grain has one distance, for
+    // which LSE is the distance itself (eq. 2.14 with one term), so no binder at any a.
+    let r = 8.0 * H;
+    let mut p = packing([48.0 * H; 3], &[]);
+    // Make both spheres one body: a clump of two.
+    let mut lib = grainpipe_core::ClumpLibrary::default();
+    lib.clumps.push(grainpipe_core::Clump {
+        spheres: vec![
+            grainpipe_core::ClumpSphere {
+                offset: [-4.5 * H, 0.0, 0.0],
+                radius: r,
+            },
+            grainpipe_core::ClumpSphere {
+                offset: [4.5 * H, 0.0, 0.0],
+                radius: r,
+            },
+        ],
+        volume: 0.0,
+        bounding_radius: 12.5 * H,
+        principal_inertia: [1.0; 3],
+        principal_axes: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        source: "two spheres".into(),
+    });
+    p.bodies = vec![grainpipe_core::Body {
+        shape: grainpipe_core::BodyShape::Clump { index: 0 },
+        position: [24.8 * H, 24.1 * H, 23.9 * H],
+        orientation: [1.0, 0.0, 0.0, 0.0],
+        layer: 0,
+        frozen: false,
+    }];
+    p.library = Some(lib);
+    let spheres = run_over(&p, H, None, BinderTarget::Scale(2.0 * H), 1, false);
+    let grains = run_over(&p, H, None, BinderTarget::Scale(2.0 * H), 1, true);
+    assert!(
+        count(&spheres.labels, 2) > 0,
+        "no ridge filling over spheres"
+    );
+    assert_eq!(count(&grains.labels, 2), 0, "binder inside a lone grain");
+    assert_eq!(count(&spheres.labels, 1), count(&grains.labels, 1));
 }
