@@ -17,6 +17,9 @@ use rayon::prelude::*;
 /// Voxels per block edge.
 pub const BLOCK: usize = 8;
 
+/// Candidates between two questions to a search's `give_up`.
+const GIVE_UP_EVERY: usize = 4;
+
 /// A sphere as seen from one block: its (periodically shifted) centre, radius, and a lower
 /// bound of `|x - centre| - radius` over the block's voxels (whole voxels, not only centres).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -360,6 +363,9 @@ pub fn min_distance(cands: &[Candidate], p: [f64; 3], below: f64, above: f64) ->
 /// The `out.len()` smallest signed distances from `p` (ascending) among candidates within
 /// `window` of the smallest; returns how many were found. Candidates further than `beyond`
 /// are not looked at when nothing closer was found (the caller does not need them).
+/// `give_up(found, bound)` is asked every few candidates with the distances found so far and
+/// a lower bound of every distance still to come; when it says so the search stops and
+/// returns 0 (the caller knows the answer cannot matter).
 #[inline]
 pub fn smallest_distances(
     cands: &[Candidate],
@@ -367,10 +373,14 @@ pub fn smallest_distances(
     window: f64,
     beyond: f64,
     out: &mut [f64],
+    give_up: impl Fn(&[f64], f64) -> bool,
 ) -> usize {
     let k = out.len();
     let mut n = 0usize;
-    for c in cands {
+    for (seen, c) in cands.iter().enumerate() {
+        if seen % GIVE_UP_EVERY == GIVE_UP_EVERY - 1 && give_up(&out[..n], c.lower_bound) {
+            return 0;
+        }
         let kth = if n == k { out[k - 1] } else { f64::INFINITY };
         let limit = if n == 0 {
             beyond
@@ -403,7 +413,7 @@ pub fn smallest_distances(
     n
 }
 
-/// Like [`smallest_distances`], but over bodies: each body counts once, with the smallest
+/// Like [`smallest_distances`] (with the same `give_up`), but over bodies: each body counts once, with the smallest
 /// distance of its spheres (the exact outward distance to a clump, eq. 2.12-2.13 of Donval
 /// et al. 2025). `bodies` receives the body of each entry. Periodic images of one body are
 /// one body here, which matters only in cells smaller than a body plus the window.
@@ -415,10 +425,14 @@ pub fn smallest_body_distances(
     beyond: f64,
     out: &mut [f64],
     bodies: &mut [u32],
+    give_up: impl Fn(&[f64], f64) -> bool,
 ) -> usize {
     let k = out.len();
     let mut n = 0usize;
-    for c in cands {
+    for (seen, c) in cands.iter().enumerate() {
+        if seen % GIVE_UP_EVERY == GIVE_UP_EVERY - 1 && give_up(&out[..n], c.lower_bound) {
+            return 0;
+        }
         let kth = if n == k { out[k - 1] } else { f64::INFINITY };
         let limit = if n == 0 {
             beyond
@@ -533,7 +547,7 @@ mod tests {
                             *bad += 1;
                         }
                         let mut out = [0.0; 4];
-                        let n = smallest_distances(cands, p, 0.05, reach, &mut out);
+                        let n = smallest_distances(cands, p, 0.05, reach, &mut out, |_, _| false);
                         let expect: Vec<f64> = want
                             .iter()
                             .copied()
@@ -552,8 +566,15 @@ mod tests {
                         }
                         let want = brute(&g, &sph, p, true);
                         let mut bodies = [0u32; 4];
-                        let n =
-                            smallest_body_distances(cands, p, 0.05, reach, &mut out, &mut bodies);
+                        let n = smallest_body_distances(
+                            cands,
+                            p,
+                            0.05,
+                            reach,
+                            &mut out,
+                            &mut bodies,
+                            |_, _| false,
+                        );
                         let expect: Vec<f64> = want
                             .iter()
                             .copied()

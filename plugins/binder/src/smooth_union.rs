@@ -241,14 +241,15 @@ impl Default for Nearest {
 
 impl Nearest {
     /// Fills the smallest distances (ascending) within `window` of the nearest; returns how
-    /// many. Nothing is searched beyond `beyond` when nothing closer was found.
+    /// many. Nothing is searched beyond `beyond` when nothing closer was found; the search
+    /// gives up (returning 0) when `give_up` says so.
     fn find(
         &mut self,
         cands: &[Candidate],
         p: [f64; 3],
         sm: Smoothing,
-        window: f64,
-        beyond: f64,
+        (window, beyond): (f64, f64),
+        give_up: impl Fn(&[f64], f64) -> bool,
     ) -> usize {
         if sm.per_body {
             smallest_body_distances(
@@ -258,9 +259,10 @@ impl Nearest {
                 beyond,
                 &mut self.d[..sm.k],
                 &mut self.bodies[..sm.k],
+                give_up,
             )
         } else {
-            smallest_distances(cands, p, window, beyond, &mut self.d[..sm.k])
+            smallest_distances(cands, p, window, beyond, &mut self.d[..sm.k], give_up)
         }
     }
 }
@@ -276,7 +278,24 @@ fn point_threshold(
     near: &mut Nearest,
 ) -> Option<f64> {
     let ln_k = (sm.k as f64).ln();
-    let n = near.find(cands, p, sm, TRUNCATION * cap, delta + cap * ln_k);
+    // Every distance still to come is at least `bound`, so the k terms of eq. (2.14) at
+    // a = cap sum to at most the found ones (each capped at the bound's weight) plus the
+    // bound's weight for the missing ones. Below 1 the point joins the union only above
+    // cap: stop there (most points near a lone grain surface end here).
+    let give_up = |found: &[f64], bound: f64| {
+        let w = |d: f64| (-(d - delta) / cap).exp();
+        let wb = w(bound);
+        let most: f64 =
+            found.iter().map(|&d| w(d).max(wb)).sum::<f64>() + (sm.k - found.len()) as f64 * wb;
+        most < 1.0
+    };
+    let n = near.find(
+        cands,
+        p,
+        sm,
+        (TRUNCATION * cap, delta + cap * ln_k),
+        give_up,
+    );
     if n == 0 || near.d[0] - delta > cap * ln_k {
         return None;
     }
@@ -589,7 +608,7 @@ where
         &mut field,
         Nearest::default,
         |dist, cands, _, p, v| {
-            let n = dist.find(cands, p, sm, window, clamp + delta);
+            let n = dist.find(cands, p, sm, (window, clamp + delta), |_, _| false);
             let value = if n == 0 {
                 clamp
             } else if a > 0.0 {

@@ -1,13 +1,12 @@
 //! `voxelize.packing`: spheres and clumps -> a phase image, with sub-voxel supersampling.
 
-use grainpipe_core::spatial::CellList;
+use grainpipe_core::raster::{min_distance, SphereRaster};
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, Phase,
     PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
     WorldSphere,
 };
-use rayon::prelude::*;
 
 #[params]
 pub struct VoxelizeParams {
@@ -199,7 +198,9 @@ impl TypedStage for Voxelize {
     }
 }
 
-/// Labels every voxel; returns the labels and the mean sub-voxel coverage.
+/// Labels every voxel; returns the labels and the mean sub-voxel coverage. Spheres are
+/// binned into blocks of voxels (`core::raster`), so each voxel looks only at the spheres
+/// that reach its block, nearest first.
 pub fn voxelize(
     grid: &Grid,
     spheres: &[WorldSphere],
@@ -207,76 +208,44 @@ pub fn voxelize(
     supersampling: usize,
     ctx: &RunContext,
 ) -> Result<(Vec<u8>, f64), StageError> {
+    let grid = Grid {
+        periodic,
+        ..grid.clone()
+    };
     let half_diag = 0.5 * grid.spacing.iter().map(|s| s * s).sum::<f64>().sqrt();
-    let rmax = spheres.iter().map(|s| s.radius).fold(0.0, f64::max);
-    let size = grid.extent();
-    let origin = grid.origin;
-    let local = |c: [f64; 3]| [0, 1, 2].map(|a| (c[a] - origin[a]).rem_euclid(size[a]));
-    let mut cells = CellList::new([0.0; 3], size, periodic, rmax + half_diag);
-    for (i, s) in spheres.iter().enumerate() {
-        cells.insert(i as u32, local(s.center));
-    }
-    let [nx, ny, nz] = grid.dims;
+    let raster = SphereRaster::new(&grid, spheres, half_diag)
+        .map_err(|e| StageError::failed(e.to_string()))?;
     let s = supersampling;
     let mut labels = vec![0u8; grid.voxel_count()];
-    let done = std::sync::atomic::AtomicU64::new(0);
-    // Each z-slice is an independent pure computation: the result does not depend on threads.
-    let coverage_sum: f64 = labels
-        .par_chunks_mut(nx * ny)
-        .enumerate()
-        .map(|(z, slice)| {
-            let mut cov = 0.0;
-            let mut candidates: Vec<usize> = Vec::new();
-            for y in 0..ny {
-                for x in 0..nx {
-                    let c = local(grid.voxel_center(x, y, z));
-                    candidates.clear();
-                    let mut full = false;
-                    cells.visit_adjacent(c, |id| {
-                        let id = id as usize;
-                        let sp = &spheres[id];
-                        let d = cells.separation(c, local(sp.center));
-                        let dist = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
-                        if dist + half_diag <= sp.radius {
-                            full = true;
-                            return false;
-                        }
-                        if dist - half_diag < sp.radius {
-                            candidates.push(id);
-                        }
-                        true
+    let coverage: Vec<f64> = raster.scan(
+        &mut labels,
+        || 0.0f64,
+        |cov, cands, _, c, label| {
+            let centre = min_distance(cands, c, -half_diag, half_diag);
+            let f = if centre <= -half_diag {
+                1.0
+            } else if centre > half_diag {
+                0.0
+            } else {
+                let mut inside = 0usize;
+                for k in 0..s * s * s {
+                    let sub = [k % s, (k / s) % s, k / (s * s)];
+                    let q: [f64; 3] = std::array::from_fn(|a| {
+                        c[a] + ((sub[a] as f64 + 0.5) / s as f64 - 0.5) * grid.spacing[a]
                     });
-                    let f = if full {
-                        1.0
-                    } else if candidates.is_empty() {
-                        0.0
-                    } else {
-                        let mut inside = 0usize;
-                        for k in 0..s * s * s {
-                            let sub = [k % s, (k / s) % s, k / (s * s)];
-                            let q: [f64; 3] = std::array::from_fn(|a| {
-                                c[a] + ((sub[a] as f64 + 0.5) / s as f64 - 0.5) * grid.spacing[a]
-                            });
-                            if candidates.iter().any(|&id| {
-                                let sp = &spheres[id];
-                                let d = cells.separation(q, local(sp.center));
-                                d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= sp.radius * sp.radius
-                            }) {
-                                inside += 1;
-                            }
-                        }
-                        inside as f64 / (s * s * s) as f64
-                    };
-                    cov += f;
-                    slice[x + nx * y] = u8::from(f >= 0.5);
+                    if min_distance(cands, q, 0.0, 0.0) <= 0.0 {
+                        inside += 1;
+                    }
                 }
-            }
-            let finished = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
-            ctx.progress(finished, nz as u64)?;
-            Ok(cov)
-        })
-        .collect::<Result<Vec<f64>, StageError>>()?
-        .iter()
-        .sum();
-    Ok((labels, coverage_sum / grid.voxel_count() as f64))
+                inside as f64 / (s * s * s) as f64
+            };
+            *cov += f;
+            *label = u8::from(f >= 0.5);
+        },
+        |done, total| ctx.progress(done, total),
+    )?;
+    Ok((
+        labels,
+        coverage.iter().sum::<f64>() / grid.voxel_count() as f64,
+    ))
 }
