@@ -1,0 +1,189 @@
+//! Preconditioned MINRES (Paige & Saunders 1975; the form of Elman, Silvester & Wathen 2014,
+//! Algorithm 4.1) for the symmetric indefinite Stokes system, with six stored vectors: the
+//! product K z is never stored but recomputed inside the Lanczos update, and the new search
+//! direction is formed before the next preconditioner application so that z can be reused.
+//!
+//! Vectors are f32 (memory); all scalars and reductions are f64, reduced in fixed chunks so
+//! that the iterates do not depend on the number of threads.
+
+use crate::mac::{dot, Stokes, CHUNK};
+use rayon::prelude::*;
+
+/// Outcome of a solve.
+#[derive(Clone, Debug)]
+pub struct MinresResult {
+    pub iterations: usize,
+    /// Final preconditioned residual relative to the initial one.
+    pub relative_residual: f64,
+    pub converged: bool,
+    /// (iteration, relative preconditioned residual) after every iteration.
+    pub history: Vec<(usize, f64)>,
+}
+
+/// Why a solve stopped without converging.
+#[derive(Clone, Debug, PartialEq)]
+pub enum MinresError {
+    /// The preconditioner is not positive definite (<z, v> <= 0).
+    IndefinitePreconditioner { iteration: usize, value: f64 },
+    /// A non-finite number appeared.
+    NotFinite { iteration: usize },
+}
+
+impl std::fmt::Display for MinresError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MinresError::IndefinitePreconditioner { iteration, value } => write!(
+                f,
+                "the multigrid preconditioner lost positive definiteness at iteration \
+                 {iteration} (<z, r> = {value:.3e}); lower over_correction"
+            ),
+            MinresError::NotFinite { iteration } => {
+                write!(f, "non-finite values at iteration {iteration}")
+            }
+        }
+    }
+}
+
+fn scale(v: &mut [f32], s: f64) {
+    let s = s as f32;
+    v.par_chunks_mut(CHUNK)
+        .for_each(|c| c.iter_mut().for_each(|x| *x *= s));
+}
+
+/// Solves K x = b from x = 0, taking `b` over as the first Lanczos vector (so the right-hand
+/// side costs no extra vector). `precond(v, z)` applies the SPD preconditioner z = P^{-1} v;
+/// `monitor(iteration, relative residual)` may stop the solve by returning an error.
+pub fn minres<P, M, E>(
+    op: &Stokes,
+    b: Vec<f32>,
+    x: &mut [f32],
+    tol: f64,
+    max_iterations: usize,
+    mut precond: P,
+    mut monitor: M,
+) -> Result<Result<MinresResult, MinresError>, E>
+where
+    P: FnMut(&[f32], &mut [f32]),
+    M: FnMut(usize, f64) -> Result<(), E>,
+{
+    let n = op.len();
+    x.par_iter_mut().for_each(|v| *v = 0.0);
+    let mut v_prev = vec![0f32; n];
+    let mut v_cur = b;
+    let mut z = vec![0f32; n];
+    let mut w_prev = vec![0f32; n];
+    let mut w_cur = vec![0f32; n];
+    precond(&v_cur, &mut z);
+    let g2 = dot(&z, &v_cur);
+    if g2.is_nan() || g2 <= 0.0 {
+        if g2 == 0.0 {
+            return Ok(Ok(MinresResult {
+                iterations: 0,
+                relative_residual: 0.0,
+                converged: true,
+                history: vec![],
+            }));
+        }
+        return Ok(Err(MinresError::IndefinitePreconditioner {
+            iteration: 0,
+            value: g2,
+        }));
+    }
+    let gamma1 = g2.sqrt();
+    let mut gamma = gamma1;
+    let mut gamma_prev = 1.0;
+    let mut eta = gamma1;
+    let (mut s_prev, mut s) = (0.0f64, 0.0f64);
+    let (mut c_prev, mut c) = (1.0f64, 1.0f64);
+    let mut history = Vec::new();
+    let mut rel = 1.0;
+    for it in 1..=max_iterations {
+        scale(&mut z, 1.0 / gamma);
+        // v_{j+1} = K z_j - (delta / gamma_j) v_j - (gamma_j / gamma_{j-1}) v_{j-1}, with
+        // delta = <K z_j, z_j> accumulated while K z_j is formed.
+        let delta = op.apply_shift_quad(&z, &mut v_prev, gamma / gamma_prev);
+        {
+            let a = (delta / gamma) as f32;
+            v_prev
+                .par_chunks_mut(CHUNK)
+                .zip(v_cur.par_chunks(CHUNK))
+                .for_each(|(vp, vc)| {
+                    for k in 0..vp.len() {
+                        vp[k] -= a * vc[k];
+                    }
+                });
+        }
+        std::mem::swap(&mut v_prev, &mut v_cur);
+        let a0 = c * delta - c_prev * s * gamma;
+        let a2 = s * delta + c_prev * c * gamma;
+        let a3 = s_prev * gamma;
+        // Unnormalized w_{j+1} = z_j - a3 w_{j-1} - a2 w_j, written over w_{j-1}.
+        {
+            let (a2, a3) = (a2 as f32, a3 as f32);
+            w_prev
+                .par_chunks_mut(CHUNK)
+                .zip(w_cur.par_chunks(CHUNK))
+                .zip(z.par_chunks(CHUNK))
+                .for_each(|((wp, wc), zz)| {
+                    for k in 0..wp.len() {
+                        wp[k] = zz[k] - a3 * wp[k] - a2 * wc[k];
+                    }
+                });
+        }
+        std::mem::swap(&mut w_prev, &mut w_cur);
+        precond(&v_cur, &mut z);
+        let g2 = dot(&z, &v_cur);
+        if g2 < 0.0 {
+            return Ok(Err(MinresError::IndefinitePreconditioner {
+                iteration: it,
+                value: g2,
+            }));
+        }
+        let gamma_next = g2.sqrt();
+        let a1 = (a0 * a0 + gamma_next * gamma_next).sqrt();
+        if !a1.is_finite() || a1 == 0.0 {
+            return Ok(Err(MinresError::NotFinite { iteration: it }));
+        }
+        let c_next = a0 / a1;
+        let s_next = gamma_next / a1;
+        {
+            let inv = (1.0 / a1) as f32;
+            let step = (c_next * eta) as f32;
+            x.par_chunks_mut(CHUNK)
+                .zip(w_cur.par_chunks_mut(CHUNK))
+                .for_each(|(xx, ww)| {
+                    for k in 0..xx.len() {
+                        ww[k] *= inv;
+                        xx[k] += step * ww[k];
+                    }
+                });
+        }
+        eta *= -s_next;
+        gamma_prev = gamma;
+        gamma = gamma_next;
+        c_prev = c;
+        c = c_next;
+        s_prev = s;
+        s = s_next;
+        rel = eta.abs() / gamma1;
+        if !rel.is_finite() {
+            return Ok(Err(MinresError::NotFinite { iteration: it }));
+        }
+        history.push((it, rel));
+        monitor(it, rel)?;
+        if rel <= tol || gamma == 0.0 {
+            return Ok(Ok(MinresResult {
+                iterations: it,
+                relative_residual: rel,
+                converged: true,
+                history,
+            }));
+        }
+    }
+    Ok(Ok(MinresResult {
+        iterations: max_iterations,
+        relative_residual: rel,
+        converged: false,
+        history,
+    }))
+}

@@ -1,0 +1,271 @@
+//! Permeability of a periodic voxel pore space in voxel units (h = 1, mu = 1, f = 1): the
+//! load cases, free of framework types.
+
+use crate::mac::{build_mask, diagonals, dot, Dims, Percolation, Stokes, FLUID};
+use crate::minres::{minres, MinresError};
+use crate::multigrid::{CycleSettings, Hierarchy};
+use rayon::prelude::*;
+
+/// Settings of a solve.
+#[derive(Clone, Copy, Debug)]
+pub struct SolverSettings {
+    /// Stop when the preconditioned residual fell by this factor.
+    pub tolerance: f64,
+    pub max_iterations: usize,
+    pub cycle: CycleSettings,
+}
+
+/// One load case f = e_axis.
+#[derive(Clone, Debug)]
+pub struct LoadCase {
+    pub axis: usize,
+    /// <u>_Y per component in voxel units (eq. (3.7)); column `axis` of kappa / h^2.
+    pub mean_velocity: [f64; 3],
+    pub iterations: usize,
+    /// Final relative preconditioned residual (MINRES estimate).
+    pub residual: f64,
+    /// ||b - K x|| / ||b|| recomputed from the solution.
+    pub true_residual: f64,
+    /// ||div u||_2 / ||u||_2 over the pore space (voxel units).
+    pub mass_error: f64,
+    pub history: Vec<(usize, f64)>,
+    /// Why the case was not solved (non-percolating direction), if so.
+    pub note: Option<String>,
+    /// The solution [u_x | u_y | u_z | p] when kept.
+    pub solution: Option<Vec<f32>>,
+}
+
+/// Why a solve failed.
+#[derive(Clone, Debug)]
+pub enum SolveError {
+    NotConverged {
+        axis: usize,
+        iterations: usize,
+        residual: f64,
+    },
+    Breakdown {
+        axis: usize,
+        cause: MinresError,
+    },
+    NoSolid,
+}
+
+impl std::fmt::Display for SolveError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = |a: &usize| ["x", "y", "z"][*a];
+        match self {
+            SolveError::NotConverged {
+                axis,
+                iterations,
+                residual,
+            } => write!(
+                f,
+                "load case {}: MINRES did not reach the tolerance in {iterations} iterations \
+                 (relative residual {residual:.3e}); raise max_iterations or loosen tolerance",
+                name(axis)
+            ),
+            SolveError::Breakdown { axis, cause } => {
+                write!(f, "load case {}: {cause}", name(axis))
+            }
+            SolveError::NoSolid => write!(
+                f,
+                "the pore space percolates along an axis without meeting any solid: the \
+                 permeability of a cell with a solid-free channel of periodic layers is unbounded"
+            ),
+        }
+    }
+}
+
+/// Bytes per voxel the solve holds at its peak: six 4-block f32 MINRES vectors (the solution
+/// included; the right-hand side is the first Lanczos vector), the mask,
+/// the three diagonal bytes, and the coarse levels of three velocity hierarchies (24 bytes per coarse unknown, 1/7 of
+/// the fine count summed over levels).
+pub const BYTES_PER_VOXEL: f64 = 6.0 * 16.0 + 1.0 + 3.0 + 3.0 * 24.0 / 7.0;
+/// Extra bytes per voxel for the velocity and pressure fields (f32, 4 components).
+pub const FIELD_BYTES_PER_VOXEL: f64 = 16.0;
+/// The percolation analysis (u32 component and i32x3 image shift per voxel) runs before the
+/// solver vectors exist.
+pub const LABEL_BYTES_PER_VOXEL: f64 = 16.0 + 1.0 + 1.0;
+
+/// The result of all load cases.
+#[derive(Clone, Debug)]
+pub struct Permeability {
+    pub percolation: Percolation,
+    /// kappa / h^2, kappa[i][j] = <u_i> under f = e_j (eq. (3.8) with mu = 1).
+    pub kappa: [[f64; 3]; 3],
+    pub cases: Vec<LoadCase>,
+    /// Porosity of the image (all fluid voxels) and of the kept pore space.
+    pub porosity: f64,
+    pub connected_porosity: f64,
+}
+
+/// Solves the load cases `axes`; `keep_solution` keeps the solution of that axis.
+/// `monitor(case index, iteration, residual)` may cancel.
+pub fn permeability<E, M>(
+    dims: Dims,
+    is_fluid: Vec<bool>,
+    axes: &[usize],
+    settings: SolverSettings,
+    keep_solution: Option<usize>,
+    mut monitor: M,
+) -> Result<Result<Permeability, SolveError>, E>
+where
+    M: FnMut(usize, usize, f64) -> Result<(), E>,
+{
+    let n = dims.len();
+    let (mask, perc) = build_mask(dims, &is_fluid);
+    let porosity = is_fluid.iter().filter(|&&f| f).count() as f64 / n as f64;
+    drop(is_fluid);
+    let connected = perc.kept as f64 / n as f64;
+    let diag = diagonals(dims, &mask);
+    let op = Stokes {
+        dims,
+        mask: &mask,
+        diag: &diag,
+    };
+    let mut kappa = [[0.0; 3]; 3];
+    let any_solve = axes.iter().any(|&a| perc.percolates[a]);
+    if any_solve && perc.kept == n {
+        return Ok(Err(SolveError::NoSolid));
+    }
+    let mut hier: Vec<Hierarchy> = if any_solve {
+        (0..3)
+            .map(|a| Hierarchy::new(dims, &mask, &diag, a, settings.cycle))
+            .collect()
+    } else {
+        Vec::new()
+    };
+    // The case whose solution is kept runs last, so its vector can outlive the others.
+    let mut order: Vec<(usize, usize)> = axes.iter().copied().enumerate().collect();
+    if let Some(k) = keep_solution {
+        if let Some(pos) = order.iter().position(|&(_, a)| a == k) {
+            let e = order.remove(pos);
+            order.push(e);
+        }
+    }
+    let mut results: Vec<Option<LoadCase>> = vec![None; axes.len()];
+    for (case_index, axis) in order {
+        if !perc.percolates[axis] {
+            results[case_index] = Some(LoadCase {
+                axis,
+                mean_velocity: [0.0; 3],
+                iterations: 0,
+                residual: 0.0,
+                true_residual: 0.0,
+                mass_error: 0.0,
+                history: vec![],
+                note: Some(format!(
+                    "the pore space does not percolate along {}: no pore component connects \
+                     to its periodic image, so kappa = 0 in that direction (not solved)",
+                    ["x", "y", "z"][axis]
+                )),
+                solution: None,
+            });
+            continue;
+        }
+        let mut b = vec![0f32; 4 * n];
+        let bit = crate::mac::active_bit(axis);
+        b[axis * n..(axis + 1) * n]
+            .par_iter_mut()
+            .zip(mask.par_iter())
+            .for_each(|(v, &m)| {
+                if m & bit != 0 {
+                    *v = 1.0;
+                }
+            });
+        let mut x = vec![0f32; 4 * n];
+        let precond = |v: &[f32], z: &mut [f32]| {
+            for (a, h) in hier.iter_mut().enumerate() {
+                h.vcycle(&v[a * n..(a + 1) * n], &mut z[a * n..(a + 1) * n]);
+            }
+            // Pressure block: the Schur complement B A^{-1} B^T is spectrally equivalent to
+            // the pressure mass matrix / mu, here the identity on the pore voxels.
+            z[3 * n..]
+                .par_iter_mut()
+                .zip(v[3 * n..].par_iter())
+                .zip(mask.par_iter())
+                .for_each(|((zz, &vv), &m)| *zz = if m & FLUID != 0 { vv } else { 0.0 });
+        };
+        let active_faces = mask.iter().filter(|&&m| m & bit != 0).count();
+        let res = minres(
+            &op,
+            b,
+            &mut x,
+            settings.tolerance,
+            settings.max_iterations,
+            precond,
+            |it, r| monitor(case_index, it, r),
+        )?;
+        let res = match res {
+            Ok(r) => r,
+            Err(cause) => return Ok(Err(SolveError::Breakdown { axis, cause })),
+        };
+        if !res.converged {
+            return Ok(Err(SolveError::NotConverged {
+                axis,
+                iterations: res.iterations,
+                residual: res.relative_residual,
+            }));
+        }
+        let mut mean = [0.0; 3];
+        for (a, m) in mean.iter_mut().enumerate() {
+            *m = sum_chunked(&x[a * n..(a + 1) * n]) / n as f64;
+            kappa[a][axis] = *m;
+        }
+        let (rv, rp) = op.residual_sq(&x, axis);
+        let bnorm = (active_faces as f64).sqrt();
+        let true_residual = (rv + rp).sqrt() / bnorm;
+        // The pressure rows of the residual are -div u (their right-hand side is 0).
+        let unorm = dot(&x[..3 * n], &x[..3 * n]).sqrt();
+        let mass_error = if unorm > 0.0 { rp.sqrt() / unorm } else { 0.0 };
+        results[case_index] = Some(LoadCase {
+            axis,
+            mean_velocity: mean,
+            iterations: res.iterations,
+            residual: res.relative_residual,
+            true_residual,
+            mass_error,
+            history: res.history,
+            note: None,
+            solution: if keep_solution == Some(axis) {
+                Some(x)
+            } else {
+                None
+            },
+        });
+    }
+    drop(hier);
+    let cases: Vec<LoadCase> = results.into_iter().flatten().collect();
+    Ok(Ok(Permeability {
+        percolation: perc,
+        kappa,
+        cases,
+        porosity,
+        connected_porosity: connected,
+    }))
+}
+
+fn sum_chunked(v: &[f32]) -> f64 {
+    v.par_chunks(crate::mac::CHUNK)
+        .map(|c| c.iter().map(|&x| x as f64).sum::<f64>())
+        .collect::<Vec<f64>>()
+        .iter()
+        .sum()
+}
+
+/// Relative asymmetry ||K - K^T||_F / ||K||_F of the solved block.
+pub fn symmetry_error(k: &[[f64; 3]; 3]) -> f64 {
+    let mut num = 0.0;
+    let mut den = 0.0;
+    for (i, row) in k.iter().enumerate() {
+        for (j, v) in row.iter().enumerate() {
+            num += (v - k[j][i]).powi(2);
+            den += v.powi(2);
+        }
+    }
+    if den > 0.0 {
+        (num / den).sqrt()
+    } else {
+        0.0
+    }
+}
