@@ -1,0 +1,260 @@
+//! Parameter types and helpers shared by `elasticity.fft` and `conductivity.fft`.
+
+use grainpipe_core::params::ParamType;
+use grainpipe_core::units::{Pressure, Q};
+use grainpipe_core::{ParamChoice, Phase, PhaseImage, StageError};
+use indexmap::IndexMap;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use crate::kernel::solver::{Method, SolveError};
+use crate::kernel::Scheme;
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ParamChoice)]
+#[serde(rename_all = "snake_case")]
+pub enum Discretization {
+    /// Staggered grid (Schneider, Ospald & Kabel 2016): stable on porous images, exact on
+    /// laminates; the default.
+    Staggered,
+    /// Trilinear hexahedra with 2x2x2 Gauss points (FANS): stable, a little stiffer.
+    Hex8,
+    /// Hexahedra with one-point integration (Willot 2015's rotated scheme): hourglass modes.
+    Rotated,
+    /// Fourier-spectral Moulinec-Suquet discretization: ringing, stalls on pores.
+    Spectral,
+}
+
+impl Discretization {
+    pub fn scheme(self) -> Scheme {
+        match self {
+            Discretization::Staggered => Scheme::Staggered,
+            Discretization::Hex8 => Scheme::Hex8,
+            Discretization::Rotated => Scheme::Rotated,
+            Discretization::Spectral => Scheme::Spectral,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ParamChoice)]
+#[serde(rename_all = "snake_case")]
+pub enum Solver {
+    /// Preconditioned conjugate gradients (Zeman et al. 2010; Brisard & Dormieux 2010).
+    Cg,
+    /// The basic fixed-point scheme (Moulinec & Suquet 1994), for comparison.
+    FixedPoint,
+}
+
+impl Solver {
+    pub fn method(self) -> Method {
+        match self {
+            Solver::Cg => Method::Cg,
+            Solver::FixedPoint => Method::FixedPoint,
+        }
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ParamChoice)]
+#[serde(rename_all = "snake_case")]
+pub enum Precision {
+    /// Double precision fields (64-bit).
+    #[serde(rename = "double")]
+    F64,
+    /// Single precision fields (32-bit; half the memory, reductions stay in double).
+    /// Residuals below about 1e-5 may not be reachable.
+    #[serde(rename = "single")]
+    F32,
+}
+
+/// `{E, nu}`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct YoungPoisson {
+    #[serde(rename = "E")]
+    pub e: Q<Pressure>,
+    pub nu: f64,
+}
+
+/// `{K, G}`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BulkShear {
+    #[serde(rename = "K")]
+    pub k: Q<Pressure>,
+    #[serde(rename = "G")]
+    pub g: Q<Pressure>,
+}
+
+/// An isotropic material given as `{E, nu}` or `{K, G}`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum Material {
+    YoungPoisson(YoungPoisson),
+    BulkShear(BulkShear),
+}
+
+impl Material {
+    pub fn e_nu(e: f64, nu: f64) -> Material {
+        Material::YoungPoisson(YoungPoisson { e: Q::new(e), nu })
+    }
+    /// Lame constants, or a message saying what is wrong.
+    pub fn iso(&self) -> Result<crate::kernel::Iso, String> {
+        match self {
+            Material::YoungPoisson(m) => {
+                let e = m.e.si();
+                if !(e > 0.0 && e.is_finite()) {
+                    return Err(format!("E must be positive, got {e} Pa"));
+                }
+                if !(m.nu > -1.0 && m.nu < 0.5) {
+                    return Err(format!("nu must lie in (-1, 0.5), got {}", m.nu));
+                }
+                Ok(crate::kernel::Iso::from_e_nu(e, m.nu))
+            }
+            Material::BulkShear(m) => {
+                let (k, g) = (m.k.si(), m.g.si());
+                if !(k > 0.0 && g > 0.0 && k.is_finite() && g.is_finite()) {
+                    return Err(format!("K and G must be positive, got {k} Pa and {g} Pa"));
+                }
+                Ok(crate::kernel::Iso::from_k_g(k, g))
+            }
+        }
+    }
+}
+
+impl ParamType for Material {
+    fn type_name() -> String {
+        "{E: pressure, nu: number} or {K: pressure, G: pressure}".into()
+    }
+    fn unit() -> &'static str {
+        "Pa"
+    }
+    fn schema() -> Value {
+        let q = <Q<Pressure> as ParamType>::schema();
+        json!({"anyOf": [
+            {"type": "object", "properties": {"E": q.clone(), "nu": {"type": "number"}},
+             "required": ["E", "nu"], "additionalProperties": false},
+            {"type": "object", "properties": {"K": q.clone(), "G": q},
+             "required": ["K", "G"], "additionalProperties": false},
+        ]})
+    }
+}
+
+/// Finds the map key naming a phase: its name or its label.
+fn key_for<'a, V>(map: &'a IndexMap<String, V>, phase: &Phase) -> Option<&'a V> {
+    map.get(&phase.name)
+        .or_else(|| map.get(&phase.id.to_string()))
+}
+
+/// Checks that every key of a phase-property map parses as a name or label (syntax only:
+/// the phases of the image are known at run time).
+pub fn check_keys<V>(key: &str, map: &IndexMap<String, V>) -> Result<(), StageError> {
+    for k in map.keys() {
+        if k.trim().is_empty() {
+            return Err(StageError::param(key, "empty phase name"));
+        }
+    }
+    Ok(())
+}
+
+/// Keys of a phase-property map that match no phase present in the image (worth a warning:
+/// a misspelt phase name would otherwise go unnoticed).
+pub fn unused_keys<V>(map: &IndexMap<String, V>, image: &PhaseImage) -> Vec<String> {
+    let mut present = [false; 256];
+    for &l in &image.labels {
+        present[l as usize] = true;
+    }
+    map.keys()
+        .filter(|k| {
+            !image
+                .phases
+                .iter()
+                .any(|p| present[p.id as usize] && &p.name == *k)
+                && !k
+                    .parse::<u8>()
+                    .map(|l| present[l as usize])
+                    .unwrap_or(false)
+        })
+        .cloned()
+        .collect()
+}
+
+/// Resolves the per-label property from a map of phase name or label -> value: label 0
+/// left out is a pore (`pore`), any other phase present in the image and left out is an
+/// error naming it and the keys given.
+pub fn resolve<V: Clone, P>(
+    key: &str,
+    map: &IndexMap<String, V>,
+    image: &PhaseImage,
+    pore: P,
+    convert: impl Fn(&V) -> Result<P, String>,
+) -> Result<Vec<P>, StageError>
+where
+    P: Clone,
+{
+    let mut present = [false; 256];
+    for &l in &image.labels {
+        present[l as usize] = true;
+    }
+    let mut out = vec![pore.clone(); 256];
+    for l in 0..256usize {
+        if !present[l] {
+            continue;
+        }
+        let phase = image
+            .phases
+            .iter()
+            .find(|p| p.id as usize == l)
+            .cloned()
+            .unwrap_or(Phase {
+                id: l as u8,
+                name: l.to_string(),
+            });
+        match key_for(map, &phase) {
+            Some(v) => {
+                out[l] = convert(v).map_err(|m| {
+                    StageError::param(key, format!("phase `{}` (label {l}): {m}", phase.name))
+                })?
+            }
+            None if l == 0 => {}
+            None => {
+                return Err(StageError::param(
+                    key,
+                    format!(
+                        "phase `{}` (label {l}) of the image has no entry; give one under its \
+                         name or label (keys given: {:?}); only label 0 defaults to pore",
+                        phase.name,
+                        map.keys().collect::<Vec<_>>()
+                    ),
+                ))
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The stage error for a solver failure of one load case.
+pub fn solve_failure(case: &str, scheme: &str, e: &SolveError) -> StageError {
+    match e {
+        SolveError::Cancelled => StageError::Cancelled,
+        e => StageError::failed(format!("load case {case} ({scheme}): {e}")),
+    }
+}
+
+pub fn validate_solver(
+    tolerance: f64,
+    max_iterations: usize,
+    stagnation_window: usize,
+) -> Result<(), StageError> {
+    if !(tolerance > 0.0 && tolerance < 1.0) {
+        return Err(StageError::param("tolerance", "must lie in (0, 1)"));
+    }
+    if max_iterations == 0 {
+        return Err(StageError::param("max_iterations", "must be at least 1"));
+    }
+    if stagnation_window < 10 {
+        return Err(StageError::param(
+            "stagnation_window",
+            "must be at least 10",
+        ));
+    }
+    Ok(())
+}

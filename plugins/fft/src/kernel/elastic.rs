@@ -1,0 +1,995 @@
+//! The elastic cell problem, eq. (3.3): find a periodic displacement fluctuation u with
+//! div C(x) : (E + grad^s u) = 0, in the displacement form `K u = -B^T C E`, `K = B^T C B`,
+//! for the four discretizations of [`Scheme`]. `B` maps the displacement to engineering
+//! strains (Voigt order xx, yy, zz, yz, xz, xy) at the quadrature points; `K` is applied in
+//! real space (staggered, hex8, rotated: local stencils) or by FFT (spectral), the
+//! preconditioner `K0^{-1}` of a homogeneous isotropic reference medium by FFT, where `K0` is
+//! a 3x3 Hermitian matrix per frequency.
+//!
+//! Pores (C = 0): the displacement inside a pore is not determined, K is only positive
+//! semi-definite. The load `-B^T C E` lies in the range of K, so CG started from zero stays
+//! consistent; the stresses (all that is averaged) are unique even though u is not
+//! (Schneider 2016, 2021).
+
+use num_complex::Complex;
+use rayon::prelude::*;
+
+use super::solver::CellProblem;
+use super::{gauss_points, hermitian_inverse, nodal_gradient, AxisTables, Iso, Scheme, C64};
+use crate::fft3::Fft3;
+use crate::real::Real;
+
+/// The x line (y, z) of a component array.
+#[inline(always)]
+fn row_of<T>(a: &[T], nx: usize, ny: usize, y: usize, z: usize) -> &[T] {
+    let b = nx * (y + ny * z);
+    &a[b..b + nx]
+}
+
+/// Raw pointer shared by tasks that write disjoint index sets.
+#[derive(Clone, Copy)]
+struct Shared<T>(*mut T);
+// SAFETY: only used where each task writes a disjoint set of indices (documented at use).
+unsafe impl<T> Send for Shared<T> {}
+unsafe impl<T> Sync for Shared<T> {}
+
+/// Bytes per voxel of the solver state for `scheme` and `cg`, with `real` bytes per scalar
+/// (8 or 4). Counts the CG vectors (u, r, z, p, q: 15 scalars; u, r, z: 9 for the fixed
+/// point), the
+/// stencil scratch, the preconditioner table (9 scalars per half-spectrum frequency), the FFT
+/// buffers and the labels.
+pub fn bytes_per_voxel(scheme: Scheme, cg: bool, real: usize) -> f64 {
+    let vectors = if cg { 15.0 } else { 9.0 };
+    let scratch = match scheme {
+        // stresses (6) + edge moduli (3) + 3 half spectra (~3 scalars)
+        Scheme::Staggered => 6.0 + 3.0 + 3.0,
+        // top-node forces (3) + 3 half spectra
+        Scheme::Hex8 | Scheme::Rotated => 3.0 + 3.0,
+        // strains/stresses (6) + 4 half spectra (~4)
+        Scheme::Spectral => 6.0 + 4.0,
+    };
+    (vectors + scratch + 4.5) * real as f64 + 1.0
+}
+
+pub struct Elastic<T: Real> {
+    pub dims: [usize; 3],
+    pub h: [f64; 3],
+    pub scheme: Scheme,
+    n: usize,
+    labels: Vec<u8>,
+    lam: [T; 256],
+    mu: [T; 256],
+    materials: [Iso; 256],
+    /// Staggered: shear moduli of the yz, xz, xy edges (harmonic mean of 4 voxels).
+    edge_mu: Vec<T>,
+    reference: Iso,
+    fft: Fft3<T>,
+    pinv: Vec<T>,
+    spec: Vec<Complex<T>>,
+    scratch: Vec<T>,
+    gauss: Vec<([f64; 3], f64)>,
+    tables: [AxisTables; 3],
+}
+
+impl<T: Real> Elastic<T> {
+    /// `materials[label]` (zero = pore), `reference` the isotropic reference medium of the
+    /// preconditioner.
+    pub fn new(
+        dims: [usize; 3],
+        h: [f64; 3],
+        labels: Vec<u8>,
+        materials: [Iso; 256],
+        scheme: Scheme,
+        reference: Iso,
+    ) -> Self {
+        let n = dims.iter().product();
+        assert_eq!(labels.len(), n);
+        let fft = Fft3::<T>::new(dims);
+        let nkx = fft.nkx;
+        let tables = [
+            AxisTables::new(nkx, dims[0], h[0]),
+            AxisTables::new(dims[1], dims[1], h[1]),
+            AxisTables::new(dims[2], dims[2], h[2]),
+        ];
+        let mut lam = [T::zero(); 256];
+        let mut mu = [T::zero(); 256];
+        for l in 0..256 {
+            lam[l] = T::of(materials[l].lambda);
+            mu[l] = T::of(materials[l].mu);
+        }
+        let spec_len = fft.spectrum_len();
+        let (spec_n, scratch_n) = match scheme {
+            Scheme::Staggered => (3 * spec_len, 6 * n),
+            Scheme::Hex8 | Scheme::Rotated => (3 * spec_len, 3 * n),
+            Scheme::Spectral => (4 * spec_len, 6 * n),
+        };
+        let mut p = Elastic {
+            dims,
+            h,
+            scheme,
+            n,
+            labels,
+            lam,
+            mu,
+            materials,
+            edge_mu: vec![],
+            reference,
+            fft,
+            pinv: vec![],
+            spec: vec![Complex::new(T::zero(), T::zero()); spec_n],
+            scratch: vec![T::zero(); scratch_n],
+            gauss: gauss_points(scheme),
+            tables,
+        };
+        if scheme == Scheme::Staggered {
+            p.edge_mu = p.edge_moduli();
+        }
+        p.pinv = p.reference_inverse();
+        p
+    }
+
+    #[inline(always)]
+    fn idx(&self, x: usize, y: usize, z: usize) -> usize {
+        x + self.dims[0] * (y + self.dims[1] * z)
+    }
+
+    /// Shear modulus of each edge from the four voxels around it (the edge
+    /// (i + e_b/2 + e_c/2) touches i, i + e_b, i + e_c, i + e_b + e_c): the harmonic mean of
+    /// the solid ones times their share of the four. Exact for laminates (with or without
+    /// void layers), zero inside pores.
+    fn edge_moduli(&self) -> Vec<T> {
+        let [nx, ny, nz] = self.dims;
+        let n = self.n;
+        let mut out = vec![T::zero(); 3 * n];
+        let nxy = nx * ny;
+        out.par_chunks_mut(nxy).enumerate().for_each(|(j, plane)| {
+            let comp = j / nz;
+            let z = j % nz;
+            for y in 0..ny {
+                for x in 0..nx {
+                    let (xp, yp, zp) = ((x + 1) % nx, (y + 1) % ny, (z + 1) % nz);
+                    let four = match comp {
+                        0 => [(x, y, z), (x, yp, z), (x, y, zp), (x, yp, zp)],
+                        1 => [(x, y, z), (xp, y, z), (x, y, zp), (xp, y, zp)],
+                        _ => [(x, y, z), (xp, y, z), (x, yp, z), (xp, yp, z)],
+                    };
+                    let mut inv = 0.0;
+                    let mut solid = 0.0;
+                    for (a, b, c) in four {
+                        let m = self.materials[self.labels[self.idx(a, b, c)] as usize].mu;
+                        if m > 0.0 {
+                            inv += 1.0 / m;
+                            solid += 1.0;
+                        }
+                    }
+                    // Solid part of the edge's dual cell times the harmonic mean of its solid
+                    // voxels: harmonic between solids (exact for laminates), pores count as
+                    // missing volume (a plain harmonic mean would zero every edge touching a
+                    // pore and make pores half a voxel larger: +29 % stiffness loss on a
+                    // 5-voxel spherical pore instead of +8 %).
+                    plane[x + nx * y] = if solid == 0.0 {
+                        T::zero()
+                    } else {
+                        T::of(solid / 4.0 * solid / inv)
+                    };
+                }
+            }
+        });
+        out
+    }
+
+    /// Strain multipliers at one quadrature point: normal (per axis) and shear (per axis).
+    fn symbol_points(&self, kx: usize, ky: usize, kz: usize) -> Vec<([C64; 3], [C64; 3], f64)> {
+        let t = &self.tables;
+        match self.scheme {
+            Scheme::Staggered => vec![(
+                [t[0].minus[kx], t[1].minus[ky], t[2].minus[kz]],
+                [t[0].plus[kx], t[1].plus[ky], t[2].plus[kz]],
+                1.0,
+            )],
+            Scheme::Spectral => {
+                let g = [t[0].spectral[kx], t[1].spectral[ky], t[2].spectral[kz]];
+                vec![(g, g, 1.0)]
+            }
+            Scheme::Hex8 | Scheme::Rotated => self
+                .gauss
+                .iter()
+                .map(|&(p, w)| {
+                    let g = nodal_gradient(t[0].e[kx], t[1].e[ky], t[2].e[kz], self.h, p);
+                    (g, g, w)
+                })
+                .collect(),
+        }
+    }
+
+    /// `K0(xi)^{-1}` for every half-spectrum frequency, `K0 = sum_q w_q B_q^H C0 B_q`.
+    fn reference_inverse(&self) -> Vec<T> {
+        let [_, ny, nz] = self.dims;
+        let nkx = self.fft.nkx;
+        let c0 = self.reference;
+        // The largest trace sets the scale under which K0 counts as zero.
+        let hmin = self.h.iter().cloned().fold(f64::INFINITY, f64::min);
+        let scale = (c0.lambda.abs() + 2.0 * c0.mu) * 12.0 / (hmin * hmin);
+        let mut out = vec![T::zero(); 9 * nkx * ny * nz];
+        out.par_chunks_mut(9 * nkx)
+            .enumerate()
+            .for_each(|(row, o)| {
+                let ky = row % ny;
+                let kz = row / ny;
+                for kx in 0..nkx {
+                    let mut k = [[C64::new(0.0, 0.0); 3]; 3];
+                    for (nm, sh, w) in self.symbol_points(kx, ky, kz) {
+                        // Rows of B acting on (u_x, u_y, u_z): normal d -> nm[d] on u_d; shear yz
+                        // -> (0, sh_z, sh_y), xz -> (sh_z, 0, sh_x), xy -> (sh_y, sh_x, 0).
+                        let zero = C64::new(0.0, 0.0);
+                        let rows: [[C64; 3]; 6] = [
+                            [nm[0], zero, zero],
+                            [zero, nm[1], zero],
+                            [zero, zero, nm[2]],
+                            [zero, sh[2], sh[1]],
+                            [sh[2], zero, sh[0]],
+                            [sh[1], sh[0], zero],
+                        ];
+                        let c = c0.voigt();
+                        for a in 0..3 {
+                            for b in 0..3 {
+                                let mut s = C64::new(0.0, 0.0);
+                                for i in 0..6 {
+                                    for j in 0..6 {
+                                        if c[i][j] != 0.0 {
+                                            s += rows[i][a].conj() * c[i][j] * rows[j][b];
+                                        }
+                                    }
+                                }
+                                k[a][b] += s * w;
+                            }
+                        }
+                    }
+                    let inv = hermitian_inverse(k, 1e-12 * scale);
+                    for (d, v) in o[9 * kx..9 * kx + 9].iter_mut().zip(inv) {
+                        *d = T::of(v);
+                    }
+                }
+            });
+        out
+    }
+
+    /// Staggered grid: stresses at voxel centres (normal) and edges (shear) into `scratch`.
+    /// Works row by row (x lines) with the periodic neighbours resolved once per row, so the
+    /// inner loops carry no index arithmetic beyond the x wrap.
+    fn staggered_stress<'a>(&mut self, u: &'a [T], load: Option<&[f64]>) {
+        let [nx, ny, nz] = self.dims;
+        let n = self.n;
+        let nxy = nx * ny;
+        let e: [T; 6] = match load {
+            Some(l) => std::array::from_fn(|k| T::of(l[k])),
+            None => [T::zero(); 6],
+        };
+        let ih = self.h.map(|h| T::of(1.0 / h));
+        let (ux, rest) = u.split_at(n);
+        let (uy, uz) = rest.split_at(n);
+        let two = T::of(2.0);
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let this = &*self;
+        scratch
+            .par_chunks_mut(nxy)
+            .enumerate()
+            .for_each(|(j, out)| {
+                let comp = j / nz;
+                let z = j % nz;
+                let zm = if z == 0 { nz - 1 } else { z - 1 };
+                let zp = if z + 1 == nz { 0 } else { z + 1 };
+                for y in 0..ny {
+                    let ym = if y == 0 { ny - 1 } else { y - 1 };
+                    let yp = if y + 1 == ny { 0 } else { y + 1 };
+                    let row = |a: &'a [T], yy: usize, zz: usize| row_of(a, nx, ny, yy, zz);
+                    let base = nx * (y + ny * z);
+                    let o = &mut out[nx * y..nx * y + nx];
+                    match comp {
+                        0..=2 => {
+                            // eq. (3.3): normal strains at the centre from the face values.
+                            let (ax, ay, by, az, bz) = (
+                                row(ux, y, z),
+                                row(uy, y, z),
+                                row(uy, ym, z),
+                                row(uz, y, z),
+                                row(uz, y, zm),
+                            );
+                            let labels = &this.labels[base..base + nx];
+                            for x in 0..nx {
+                                let xm = if x == 0 { nx - 1 } else { x - 1 };
+                                let exx = (ax[x] - ax[xm]) * ih[0] + e[0];
+                                let eyy = (ay[x] - by[x]) * ih[1] + e[1];
+                                let ezz = (az[x] - bz[x]) * ih[2] + e[2];
+                                let l = labels[x] as usize;
+                                let tr = (exx + eyy + ezz) * this.lam[l];
+                                let ed = match comp {
+                                    0 => exx,
+                                    1 => eyy,
+                                    _ => ezz,
+                                };
+                                o[x] = tr + two * this.mu[l] * ed;
+                            }
+                        }
+                        3 => {
+                            let (a0, a1, b0, b1) =
+                                (row(uy, y, z), row(uy, y, zp), row(uz, y, z), row(uz, yp, z));
+                            let m = &this.edge_mu[base..base + nx];
+                            for x in 0..nx {
+                                let g = (a1[x] - a0[x]) * ih[2] + (b1[x] - b0[x]) * ih[1] + e[3];
+                                o[x] = m[x] * g;
+                            }
+                        }
+                        4 => {
+                            let (a0, a1, b0) = (row(ux, y, z), row(ux, y, zp), row(uz, y, z));
+                            let m = &this.edge_mu[n + base..n + base + nx];
+                            for x in 0..nx {
+                                let xp = if x + 1 == nx { 0 } else { x + 1 };
+                                let g = (a1[x] - a0[x]) * ih[2] + (b0[xp] - b0[x]) * ih[0] + e[4];
+                                o[x] = m[x] * g;
+                            }
+                        }
+                        _ => {
+                            let (a0, a1, b0) = (row(ux, y, z), row(ux, yp, z), row(uy, y, z));
+                            let m = &this.edge_mu[2 * n + base..2 * n + base + nx];
+                            for x in 0..nx {
+                                let xp = if x + 1 == nx { 0 } else { x + 1 };
+                                let g = (a1[x] - a0[x]) * ih[1] + (b0[xp] - b0[x]) * ih[0] + e[5];
+                                o[x] = m[x] * g;
+                            }
+                        }
+                    }
+                }
+            });
+        self.scratch = scratch;
+    }
+
+    fn staggered_apply(&mut self, u: &[T], load: Option<&[f64]>, out: &mut [T]) {
+        self.staggered_stress(u, load);
+        let [nx, ny, nz] = self.dims;
+        let n = self.n;
+        let nxy = nx * ny;
+        let ih = self.h.map(|h| T::of(1.0 / h));
+        let s = &self.scratch;
+        // B^T: the divergence of the staggered stresses at the faces.
+        out.par_chunks_mut(nxy).enumerate().for_each(|(j, o)| {
+            let comp = j / nz;
+            let z = j % nz;
+            let zm = if z == 0 { nz - 1 } else { z - 1 };
+            let zp = if z + 1 == nz { 0 } else { z + 1 };
+            let row = |k: usize, yy: usize, zz: usize| {
+                let b = k * n + nx * (yy + ny * zz);
+                &s[b..b + nx]
+            };
+            for y in 0..ny {
+                let ym = if y == 0 { ny - 1 } else { y - 1 };
+                let yp = if y + 1 == ny { 0 } else { y + 1 };
+                let o = &mut o[nx * y..nx * y + nx];
+                match comp {
+                    0 => {
+                        let (n0, s5, s5m, s4, s4m) = (
+                            row(0, y, z),
+                            row(5, y, z),
+                            row(5, ym, z),
+                            row(4, y, z),
+                            row(4, y, zm),
+                        );
+                        for x in 0..nx {
+                            let xp = if x + 1 == nx { 0 } else { x + 1 };
+                            o[x] = (n0[x] - n0[xp]) * ih[0]
+                                + (s5m[x] - s5[x]) * ih[1]
+                                + (s4m[x] - s4[x]) * ih[2];
+                        }
+                    }
+                    1 => {
+                        let (n1, n1p, s5, s3, s3m) = (
+                            row(1, y, z),
+                            row(1, yp, z),
+                            row(5, y, z),
+                            row(3, y, z),
+                            row(3, y, zm),
+                        );
+                        for x in 0..nx {
+                            let xm = if x == 0 { nx - 1 } else { x - 1 };
+                            o[x] = (n1[x] - n1p[x]) * ih[1]
+                                + (s5[xm] - s5[x]) * ih[0]
+                                + (s3m[x] - s3[x]) * ih[2];
+                        }
+                    }
+                    _ => {
+                        let (n2, n2p, s4, s3, s3m) = (
+                            row(2, y, z),
+                            row(2, y, zp),
+                            row(4, y, z),
+                            row(3, y, z),
+                            row(3, ym, z),
+                        );
+                        for x in 0..nx {
+                            let xm = if x == 0 { nx - 1 } else { x - 1 };
+                            o[x] = (n2[x] - n2p[x]) * ih[2]
+                                + (s4[xm] - s4[x]) * ih[0]
+                                + (s3m[x] - s3[x]) * ih[1];
+                        }
+                    }
+                }
+            }
+        });
+    }
+
+    /// Strain (engineering Voigt, without the load) and stress at Gauss point `g` of the
+    /// element at (x, y, z) of a nodal scheme, from its 24 nodal values.
+    #[inline(always)]
+    fn element_gradients(&self, ue: &[[T; 8]; 3]) -> [[[T; 4]; 3]; 3] {
+        // d[axis][comp][edge]: differences along `axis` on its 4 parallel edges, edge index
+        // (j + 2k) over the two other axes in order.
+        let ih = self.h.map(|h| T::of(1.0 / h));
+        let mut d = [[[T::zero(); 4]; 3]; 3];
+        for c in 0..3 {
+            for a in 0..2 {
+                for b in 0..2 {
+                    // node index = dx + 2 dy + 4 dz
+                    d[0][c][a + 2 * b] = (ue[c][1 + 2 * a + 4 * b] - ue[c][2 * a + 4 * b]) * ih[0];
+                    d[1][c][a + 2 * b] = (ue[c][a + 2 + 4 * b] - ue[c][a + 4 * b]) * ih[1];
+                    d[2][c][a + 2 * b] = (ue[c][a + 2 * b + 4] - ue[c][a + 2 * b]) * ih[2];
+                }
+            }
+        }
+        d
+    }
+
+    /// Nodal schemes: `out = B^T C (E + B u)`, element by element. Each task owns one element
+    /// plane and writes the forces of its bottom nodes into `out` and of its top nodes into
+    /// the scratch plane; the planes are summed afterwards in a fixed order.
+    fn nodal_apply(&mut self, u: &[T], load: Option<&[f64]>, out: &mut [T]) {
+        let [nx, ny, nz] = self.dims;
+        let n = self.n;
+        let nxy = nx * ny;
+        let e: [T; 6] = match load {
+            Some(l) => std::array::from_fn(|k| T::of(l[k])),
+            None => [T::zero(); 6],
+        };
+        let ih = self.h.map(|h| T::of(1.0 / h));
+        let gauss: Vec<([[T; 2]; 3], T)> = self
+            .gauss
+            .iter()
+            .map(|&(p, w)| {
+                (
+                    [0, 1, 2].map(|a| [T::of(1.0 - p[a]), T::of(p[a])]),
+                    T::of(w),
+                )
+            })
+            .collect();
+        let two = T::of(2.0);
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let top = Shared(scratch.as_mut_ptr());
+        let bottom = Shared(out.as_mut_ptr());
+        let this = &*self;
+        (0..nz).into_par_iter().for_each(|z| {
+            let (top, bottom) = (top, bottom);
+            let zp = (z + 1) % nz;
+            for c in 0..3 {
+                for k in 0..nxy {
+                    // SAFETY: task z owns plane z of `out` and of `scratch` (all components).
+                    unsafe {
+                        *bottom.0.add(c * n + z * nxy + k) = T::zero();
+                        *top.0.add(c * n + z * nxy + k) = T::zero();
+                    }
+                }
+            }
+            for y in 0..ny {
+                let yp = (y + 1) % ny;
+                for x in 0..nx {
+                    let xp = (x + 1) % nx;
+                    let nodes = [
+                        this.idx(x, y, z),
+                        this.idx(xp, y, z),
+                        this.idx(x, yp, z),
+                        this.idx(xp, yp, z),
+                        this.idx(x, y, zp),
+                        this.idx(xp, y, zp),
+                        this.idx(x, yp, zp),
+                        this.idx(xp, yp, zp),
+                    ];
+                    let ue: [[T; 8]; 3] =
+                        std::array::from_fn(|c| std::array::from_fn(|k| u[c * n + nodes[k]]));
+                    let d = this.element_gradients(&ue);
+                    let l = this.labels[nodes[0]] as usize;
+                    let (lam, mu) = (this.lam[l], this.mu[l]);
+                    let mut f = [[[T::zero(); 4]; 3]; 3];
+                    if lam != T::zero() || mu != T::zero() {
+                        for (wt, w) in &gauss {
+                            // bilinear weights of the 4 edges of each axis at this point
+                            let we = |a: usize, b: usize| {
+                                [
+                                    wt[a][0] * wt[b][0],
+                                    wt[a][1] * wt[b][0],
+                                    wt[a][0] * wt[b][1],
+                                    wt[a][1] * wt[b][1],
+                                ]
+                            };
+                            let wx = we(1, 2);
+                            let wy = we(0, 2);
+                            let wz = we(0, 1);
+                            let ws = [wx, wy, wz];
+                            // g[axis][comp] = d u_comp / d axis
+                            let mut g = [[T::zero(); 3]; 3];
+                            for a in 0..3 {
+                                for c in 0..3 {
+                                    g[a][c] = d[a][c][0] * ws[a][0]
+                                        + d[a][c][1] * ws[a][1]
+                                        + d[a][c][2] * ws[a][2]
+                                        + d[a][c][3] * ws[a][3];
+                                }
+                            }
+                            let exx = g[0][0] + e[0];
+                            let eyy = g[1][1] + e[1];
+                            let ezz = g[2][2] + e[2];
+                            let tr = lam * (exx + eyy + ezz);
+                            let syz = mu * (g[1][2] + g[2][1] + e[3]);
+                            let sxz = mu * (g[0][2] + g[2][0] + e[4]);
+                            let sxy = mu * (g[0][1] + g[1][0] + e[5]);
+                            let s = [
+                                [tr + two * mu * exx, sxy, sxz],
+                                [sxy, tr + two * mu * eyy, syz],
+                                [sxz, syz, tr + two * mu * ezz],
+                            ];
+                            for a in 0..3 {
+                                for c in 0..3 {
+                                    let v = *w * s[a][c];
+                                    for q in 0..4 {
+                                        f[a][c][q] = f[a][c][q] + v * ws[a][q];
+                                    }
+                                }
+                            }
+                        }
+                    }
+                    // Edge forces to nodes (transpose of the differences).
+                    let mut fn_ = [[T::zero(); 8]; 3];
+                    for c in 0..3 {
+                        for a in 0..2 {
+                            for b in 0..2 {
+                                let q = a + 2 * b;
+                                let fx = f[0][c][q] * ih[0];
+                                fn_[c][1 + 2 * a + 4 * b] = fn_[c][1 + 2 * a + 4 * b] + fx;
+                                fn_[c][2 * a + 4 * b] = fn_[c][2 * a + 4 * b] - fx;
+                                let fy = f[1][c][q] * ih[1];
+                                fn_[c][a + 2 + 4 * b] = fn_[c][a + 2 + 4 * b] + fy;
+                                fn_[c][a + 4 * b] = fn_[c][a + 4 * b] - fy;
+                                let fz = f[2][c][q] * ih[2];
+                                fn_[c][a + 2 * b + 4] = fn_[c][a + 2 * b + 4] + fz;
+                                fn_[c][a + 2 * b] = fn_[c][a + 2 * b] - fz;
+                            }
+                        }
+                    }
+                    for c in 0..3 {
+                        for k in 0..8 {
+                            let plane_index = nodes[k] % nxy;
+                            // SAFETY: bottom nodes (k < 4) lie in plane z of `out`, top nodes
+                            // in plane z of `scratch`, both owned by this task.
+                            unsafe {
+                                if k < 4 {
+                                    let p = bottom.0.add(c * n + z * nxy + plane_index);
+                                    *p = *p + fn_[c][k];
+                                } else {
+                                    let p = top.0.add(c * n + z * nxy + plane_index);
+                                    *p = *p + fn_[c][k];
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        });
+        // Top-node forces of element plane z - 1 belong to node plane z.
+        out.par_chunks_mut(nxy).enumerate().for_each(|(j, o)| {
+            let c = j / nz;
+            let z = j % nz;
+            let zm = (z + nz - 1) % nz;
+            let t = &scratch[c * n + zm * nxy..c * n + zm * nxy + nxy];
+            o.iter_mut().zip(t).for_each(|(o, &t)| *o = *o + t);
+        });
+        self.scratch = scratch;
+    }
+
+    /// Spectral strain multipliers of Voigt component `k` acting on (u_x, u_y, u_z).
+    fn spectral_row(&self, k: usize, kx: usize, ky: usize, kz: usize) -> [C64; 3] {
+        let t = &self.tables;
+        let g = [t[0].spectral[kx], t[1].spectral[ky], t[2].spectral[kz]];
+        let z = C64::new(0.0, 0.0);
+        match k {
+            0 => [g[0], z, z],
+            1 => [z, g[1], z],
+            2 => [z, z, g[2]],
+            3 => [z, g[2], g[1]],
+            4 => [g[2], z, g[0]],
+            _ => [g[1], g[0], z],
+        }
+    }
+
+    /// Spectral: strains (without the load) of `u` at the voxel centres into `scratch`.
+    fn spectral_strain(&mut self, u: &[T]) {
+        let n = self.n;
+        let sl = self.fft.spectrum_len();
+        let mut spec = std::mem::take(&mut self.spec);
+        let mut scratch = std::mem::take(&mut self.scratch);
+        for c in 0..3 {
+            self.fft
+                .forward(&u[c * n..(c + 1) * n], &mut spec[c * sl..(c + 1) * sl]);
+        }
+        let inv_n = T::of(1.0 / n as f64);
+        let (uhat, work) = spec.split_at_mut(3 * sl);
+        for k in 0..6 {
+            self.spectral_multiply(k, uhat, &mut work[..sl], false);
+            self.fft
+                .inverse(&mut work[..sl], &mut scratch[k * n..(k + 1) * n]);
+            scratch[k * n..(k + 1) * n]
+                .par_iter_mut()
+                .for_each(|v| *v = *v * inv_n);
+        }
+        self.spec = spec;
+        self.scratch = scratch;
+    }
+
+    /// `work = row_k . uhat` (or, with `transpose`, `uhat[c] += conj(row_k[c]) work`).
+    fn spectral_multiply(
+        &self,
+        k: usize,
+        uhat: &mut [Complex<T>],
+        work: &mut [Complex<T>],
+        transpose: bool,
+    ) {
+        let [_, ny, _] = self.dims;
+        let nkx = self.fft.nkx;
+        let sl = self.fft.spectrum_len();
+        let cv = |c: C64| Complex::new(T::of(c.re), T::of(c.im));
+        if transpose {
+            let (u0, rest) = uhat.split_at_mut(sl);
+            let (u1, u2) = rest.split_at_mut(sl);
+            u0.par_chunks_mut(nkx)
+                .zip(u1.par_chunks_mut(nkx))
+                .zip(u2.par_chunks_mut(nkx))
+                .zip(work.par_chunks(nkx))
+                .enumerate()
+                .for_each(|(row, (((a, b), c), w))| {
+                    let (ky, kz) = (row % ny, row / ny);
+                    for kx in 0..nkx {
+                        let r = self.spectral_row(k, kx, ky, kz);
+                        a[kx] = a[kx] + cv(r[0].conj()) * w[kx];
+                        b[kx] = b[kx] + cv(r[1].conj()) * w[kx];
+                        c[kx] = c[kx] + cv(r[2].conj()) * w[kx];
+                    }
+                });
+        } else {
+            let uhat = &*uhat;
+            work.par_chunks_mut(nkx).enumerate().for_each(|(row, w)| {
+                let (ky, kz) = (row % ny, row / ny);
+                for kx in 0..nkx {
+                    let r = self.spectral_row(k, kx, ky, kz);
+                    let i = kx + nkx * row;
+                    w[kx] =
+                        cv(r[0]) * uhat[i] + cv(r[1]) * uhat[sl + i] + cv(r[2]) * uhat[2 * sl + i];
+                }
+            });
+        }
+    }
+
+    fn spectral_apply(&mut self, u: &[T], load: Option<&[f64]>, out: &mut [T]) {
+        let n = self.n;
+        let sl = self.fft.spectrum_len();
+        self.spectral_strain(u);
+        // Stresses at the voxel centres, in place.
+        let e: [T; 6] = match load {
+            Some(l) => std::array::from_fn(|k| T::of(l[k])),
+            None => [T::zero(); 6],
+        };
+        let two = T::of(2.0);
+        {
+            let (lam, mu, labels) = (&self.lam, &self.mu, &self.labels);
+            let mut parts: Vec<&mut [T]> = self.scratch.chunks_mut(n).collect();
+            let (a, rest) = parts.split_at_mut(3);
+            let [s0, s1, s2] = a else { unreachable!() };
+            let [s3, s4, s5] = rest else { unreachable!() };
+            s0.par_iter_mut()
+                .zip(s1.par_iter_mut())
+                .zip(s2.par_iter_mut())
+                .zip(s3.par_iter_mut())
+                .zip(s4.par_iter_mut())
+                .zip(s5.par_iter_mut())
+                .enumerate()
+                .for_each(|(i, (((((a, b), c), d), f), g))| {
+                    let l = labels[i] as usize;
+                    let (ex, ey, ez) = (*a + e[0], *b + e[1], *c + e[2]);
+                    let tr = lam[l] * (ex + ey + ez);
+                    *a = tr + two * mu[l] * ex;
+                    *b = tr + two * mu[l] * ey;
+                    *c = tr + two * mu[l] * ez;
+                    *d = mu[l] * (*d + e[3]);
+                    *f = mu[l] * (*f + e[4]);
+                    *g = mu[l] * (*g + e[5]);
+                });
+        }
+        let mut spec = std::mem::take(&mut self.spec);
+        let (uhat, work) = spec.split_at_mut(3 * sl);
+        uhat.par_iter_mut()
+            .for_each(|v| *v = Complex::new(T::zero(), T::zero()));
+        for k in 0..6 {
+            self.fft
+                .forward(&self.scratch[k * n..(k + 1) * n], &mut work[..sl]);
+            self.spectral_multiply(k, uhat, &mut work[..sl], true);
+        }
+        let inv_n = T::of(1.0 / n as f64);
+        for c in 0..3 {
+            self.fft.inverse(
+                &mut uhat[c * sl..(c + 1) * sl],
+                &mut out[c * n..(c + 1) * n],
+            );
+            out[c * n..(c + 1) * n]
+                .par_iter_mut()
+                .for_each(|v| *v = *v * inv_n);
+        }
+        self.spec = spec;
+    }
+
+    /// Voxel-centred strain (with the load) and stress of a solution: staggered shear values
+    /// are the mean of the voxel's four edges, nodal ones the Gauss-weighted mean. Writes
+    /// the 6-component fields (component fastest) when `fields` is given, and returns per
+    /// label the summed stress and the voxel count. The mean of the voxel stresses is the
+    /// mean stress of eq. (3.4) exactly (each edge is shared by four voxels).
+    pub fn stress_stats(
+        &mut self,
+        u: &[T],
+        load: &[f64],
+        mut fields: Option<(&mut [f64], &mut [f64])>,
+    ) -> Vec<([f64; 6], u64)> {
+        let [nx, ny, nz] = self.dims;
+        let n = self.n;
+        let nxy = nx * ny;
+        if self.scheme == Scheme::Spectral {
+            self.spectral_strain(u);
+        }
+        if self.scheme == Scheme::Staggered {
+            // Strains at the staggered points: the stresses with unit moduli are not
+            // enough (edges next to pores are zero), so strains are recomputed below.
+            self.staggered_stress(u, Some(load));
+        }
+        let this = &*self;
+        type PlaneStats = (Vec<([f64; 6], u64)>, Vec<[f64; 12]>);
+        let per_plane: Vec<PlaneStats> = (0..nz)
+            .into_par_iter()
+            .map(|z| {
+                let mut acc = vec![([0.0; 6], 0u64); 256];
+                let mut vals = Vec::with_capacity(if fields.is_some() { nxy } else { 0 });
+                for y in 0..ny {
+                    for x in 0..nx {
+                        let (eps, sig) = this.voxel_values(u, load, x, y, z);
+                        let l = this.labels[this.idx(x, y, z)] as usize;
+                        for k in 0..6 {
+                            acc[l].0[k] += sig[k];
+                        }
+                        acc[l].1 += 1;
+                        if vals.capacity() > 0 {
+                            let mut v = [0.0; 12];
+                            v[..6].copy_from_slice(&eps);
+                            v[6..].copy_from_slice(&sig);
+                            vals.push(v);
+                        }
+                    }
+                }
+                (acc, vals)
+            })
+            .collect();
+        let mut total = vec![([0.0; 6], 0u64); 256];
+        for (z, (acc, vals)) in per_plane.into_iter().enumerate() {
+            for l in 0..256 {
+                for k in 0..6 {
+                    total[l].0[k] += acc[l].0[k];
+                }
+                total[l].1 += acc[l].1;
+            }
+            if let Some((eps, sig)) = fields.as_mut() {
+                for (k, v) in vals.iter().enumerate() {
+                    let i = z * nxy + k;
+                    eps[6 * i..6 * i + 6].copy_from_slice(&v[..6]);
+                    sig[6 * i..6 * i + 6].copy_from_slice(&v[6..]);
+                }
+            }
+        }
+        let _ = n;
+        total
+    }
+
+    /// Strain (load included) and stress at voxel (x, y, z).
+    fn voxel_values(
+        &self,
+        u: &[T],
+        load: &[f64],
+        x: usize,
+        y: usize,
+        z: usize,
+    ) -> ([f64; 6], [f64; 6]) {
+        let [nx, ny, nz] = self.dims;
+        let n = self.n;
+        let i = self.idx(x, y, z);
+        let m = self.materials[self.labels[i] as usize];
+        let c = m.voigt();
+        let stress_of = |eps: &[f64; 6]| {
+            let mut s = [0.0; 6];
+            for a in 0..6 {
+                for b in 0..6 {
+                    s[a] += c[a][b] * eps[b];
+                }
+            }
+            s
+        };
+        let (xm, ym, zm) = ((x + nx - 1) % nx, (y + ny - 1) % ny, (z + nz - 1) % nz);
+        let (xp, yp, zp) = ((x + 1) % nx, (y + 1) % ny, (z + 1) % nz);
+        let g = |c: usize, j: usize| u[c * n + j].f64();
+        match self.scheme {
+            Scheme::Staggered => {
+                let ih = self.h.map(|h| 1.0 / h);
+                let mut eps = [0.0; 6];
+                eps[0] = (g(0, i) - g(0, self.idx(xm, y, z))) * ih[0] + load[0];
+                eps[1] = (g(1, i) - g(1, self.idx(x, ym, z))) * ih[1] + load[1];
+                eps[2] = (g(2, i) - g(2, self.idx(x, y, zm))) * ih[2] + load[2];
+                let mut sig = [0.0; 6];
+                let s = &self.scratch;
+                for k in 0..3 {
+                    sig[k] = s[k * n + i].f64();
+                }
+                // Edge strain at the edge whose lower voxel is (a, b, c).
+                let gam = |k: usize, a: usize, b: usize, cz: usize| {
+                    let j = self.idx(a, b, cz);
+                    let (ap, bp, cp) = ((a + 1) % nx, (b + 1) % ny, (cz + 1) % nz);
+                    match k {
+                        3 => {
+                            (g(1, self.idx(a, b, cp)) - g(1, j)) * ih[2]
+                                + (g(2, self.idx(a, bp, cz)) - g(2, j)) * ih[1]
+                                + load[3]
+                        }
+                        4 => {
+                            (g(0, self.idx(a, b, cp)) - g(0, j)) * ih[2]
+                                + (g(2, self.idx(ap, b, cz)) - g(2, j)) * ih[0]
+                                + load[4]
+                        }
+                        _ => {
+                            (g(0, self.idx(a, bp, cz)) - g(0, j)) * ih[1]
+                                + (g(1, self.idx(ap, b, cz)) - g(1, j)) * ih[0]
+                                + load[5]
+                        }
+                    }
+                };
+                let edges = |k: usize| -> [(usize, usize, usize); 4] {
+                    match k {
+                        3 => [(x, y, z), (x, ym, z), (x, y, zm), (x, ym, zm)],
+                        4 => [(x, y, z), (xm, y, z), (x, y, zm), (xm, y, zm)],
+                        _ => [(x, y, z), (xm, y, z), (x, ym, z), (xm, ym, z)],
+                    }
+                };
+                for k in 3..6 {
+                    for (a, b, cz) in edges(k) {
+                        eps[k] += 0.25 * gam(k, a, b, cz);
+                        sig[k] += 0.25 * s[k * n + self.idx(a, b, cz)].f64();
+                    }
+                }
+                (eps, sig)
+            }
+            Scheme::Spectral => {
+                let mut eps = [0.0; 6];
+                for k in 0..6 {
+                    eps[k] = self.scratch[k * n + i].f64() + load[k];
+                }
+                (eps, stress_of(&eps))
+            }
+            Scheme::Hex8 | Scheme::Rotated => {
+                let nodes = [
+                    i,
+                    self.idx(xp, y, z),
+                    self.idx(x, yp, z),
+                    self.idx(xp, yp, z),
+                    self.idx(x, y, zp),
+                    self.idx(xp, y, zp),
+                    self.idx(x, yp, zp),
+                    self.idx(xp, yp, zp),
+                ];
+                let ih = self.h.map(|h| 1.0 / h);
+                let mut eps = [0.0; 6];
+                for &(p, w) in &self.gauss {
+                    let mut gr = [[0.0; 3]; 3];
+                    for (k, &node) in nodes.iter().enumerate() {
+                        let (dx, dy, dz) = (k & 1, (k >> 1) & 1, (k >> 2) & 1);
+                        let s = |d: usize, t: f64| if d == 1 { t } else { 1.0 - t };
+                        let ds = |d: usize| if d == 1 { 1.0 } else { -1.0 };
+                        let grad = [
+                            ds(dx) * ih[0] * s(dy, p[1]) * s(dz, p[2]),
+                            ds(dy) * ih[1] * s(dx, p[0]) * s(dz, p[2]),
+                            ds(dz) * ih[2] * s(dx, p[0]) * s(dy, p[1]),
+                        ];
+                        for a in 0..3 {
+                            for cc in 0..3 {
+                                gr[a][cc] += grad[a] * g(cc, node);
+                            }
+                        }
+                    }
+                    let e = [
+                        gr[0][0],
+                        gr[1][1],
+                        gr[2][2],
+                        gr[1][2] + gr[2][1],
+                        gr[0][2] + gr[2][0],
+                        gr[0][1] + gr[1][0],
+                    ];
+                    for k in 0..6 {
+                        eps[k] += w * (e[k] + load[k]);
+                    }
+                }
+                (eps, stress_of(&eps))
+            }
+        }
+    }
+}
+
+impl<T: Real> CellProblem<T> for Elastic<T> {
+    fn unknowns(&self) -> usize {
+        3 * self.n
+    }
+
+    fn apply(&mut self, u: &[T], load: Option<&[f64]>, out: &mut [T]) {
+        match self.scheme {
+            Scheme::Staggered => self.staggered_apply(u, load, out),
+            Scheme::Hex8 | Scheme::Rotated => self.nodal_apply(u, load, out),
+            Scheme::Spectral => self.spectral_apply(u, load, out),
+        }
+    }
+
+    fn precondition(&mut self, r: &[T], z: &mut [T]) {
+        let n = self.n;
+        let sl = self.fft.spectrum_len();
+        let mut spec = std::mem::take(&mut self.spec);
+        for c in 0..3 {
+            self.fft
+                .forward(&r[c * n..(c + 1) * n], &mut spec[c * sl..(c + 1) * sl]);
+        }
+        {
+            let (s0, rest) = spec.split_at_mut(sl);
+            let (s1, rest) = rest.split_at_mut(sl);
+            let s2 = &mut rest[..sl];
+            let pinv = &self.pinv;
+            s0.par_chunks_mut(4096)
+                .zip(s1.par_chunks_mut(4096))
+                .zip(s2.par_chunks_mut(4096))
+                .enumerate()
+                .for_each(|(ch, ((a, b), c))| {
+                    for k in 0..a.len() {
+                        let p = &pinv[9 * (ch * 4096 + k)..9 * (ch * 4096 + k) + 9];
+                        let o01 = Complex::new(p[3], p[4]);
+                        let o02 = Complex::new(p[5], p[6]);
+                        let o12 = Complex::new(p[7], p[8]);
+                        let (x, y, w) = (a[k], b[k], c[k]);
+                        a[k] = x * p[0] + o01 * y + o02 * w;
+                        b[k] = o01.conj() * x + y * p[1] + o12 * w;
+                        c[k] = o02.conj() * x + o12.conj() * y + w * p[2];
+                    }
+                });
+        }
+        let inv_n = T::of(1.0 / n as f64);
+        for c in 0..3 {
+            self.fft
+                .inverse(&mut spec[c * sl..(c + 1) * sl], &mut z[c * n..(c + 1) * n]);
+            z[c * n..(c + 1) * n]
+                .par_iter_mut()
+                .for_each(|v| *v = *v * inv_n);
+        }
+        self.spec = spec;
+    }
+
+    fn load_energy(&self, load: &[f64]) -> f64 {
+        let c = self.reference.voigt();
+        let mut e = 0.0;
+        for a in 0..6 {
+            for b in 0..6 {
+                e += load[a] * c[a][b] * load[b];
+            }
+        }
+        e * self.n as f64
+    }
+}

@@ -1,0 +1,114 @@
+//! pipelines/elasticity.yaml through the engine (packing.rsa -> voxelize.packing ->
+//! elasticity.fft + conductivity.fft), checked against bounds that hold for any geometry,
+//! plus the registry consistency check and an inline pipeline with a parameter error.
+#![allow(clippy::needless_range_loop)]
+
+mod common;
+
+use grainpipe_core::testing::{run_pipeline, run_yaml, workspace_root};
+use grainpipe_core::Registry;
+use grainpipe_fft::kernel::Iso;
+
+fn registry() -> Registry {
+    let mut r = Registry::new();
+    grainpipe_formats::register(&mut r);
+    grainpipe_geometry::register(&mut r);
+    grainpipe_fft::register(&mut r);
+    r
+}
+
+#[test]
+fn registry_is_consistent() {
+    registry().check_consistency().unwrap();
+}
+
+#[test]
+fn elasticity_pipeline_runs_and_exports() {
+    let root = workspace_root(env!("CARGO_MANIFEST_DIR"));
+    let out = tempfile::tempdir().unwrap();
+    let res = run_pipeline(&registry(), &root, "elasticity.yaml", &[], out.path()).unwrap();
+    let img = res.artifact("voxels.image").as_phase_image().unwrap();
+    let phi = img.fraction(1);
+    let c = res.artifact("stiffness.stiffness").as_tensor().unwrap();
+    assert_eq!(c.shape, vec![6, 6]);
+    let v = |i: usize, j: usize| c.values[6 * i + j];
+    // Sand spheres (66.9 GPa, 0.25) in binder (43 GPa, 0.17): the bulk and shear moduli of
+    // the nearly isotropic apparent stiffness lie within the Hashin-Shtrikman bounds
+    // (2 % slack for the anisotropy of one small sample), and C is symmetric.
+    let (s, b) = (Iso::from_e_nu(66.9e9, 0.25), Iso::from_e_nu(43e9, 0.17));
+    let hs_k = |ka: f64, ga: f64, fa: f64, kb: f64, fb: f64| {
+        ka + fb / (1.0 / (kb - ka) + 3.0 * fa / (3.0 * ka + 4.0 * ga))
+    };
+    let (k_lo, k_hi) = (
+        hs_k(b.bulk(), b.mu, 1.0 - phi, s.bulk(), phi),
+        hs_k(s.bulk(), s.mu, phi, b.bulk(), 1.0 - phi),
+    );
+    let k = (v(0, 0) + v(1, 1) + v(2, 2) + 2.0 * (v(0, 1) + v(0, 2) + v(1, 2))) / 9.0;
+    assert!(
+        k > 0.98 * k_lo && k < 1.02 * k_hi,
+        "K {k} not in [{k_lo}, {k_hi}]"
+    );
+    for i in 0..6 {
+        for j in 0..6 {
+            assert!(
+                (v(i, j) - v(j, i)).abs() < 1e-3 * v(0, 0),
+                "asymmetric C{i}{j}"
+            );
+        }
+    }
+    // The mean stress is the volume average of the phase stresses (eq. 3.4).
+    let ps = res.table("stiffness.phase_stress");
+    let f = ps.f64_column("fraction").unwrap();
+    let sxx = ps.f64_column("s_xx").unwrap();
+    let mean_xx: f64 = f.iter().zip(sxx).take(2).map(|(a, b)| a * b).sum();
+    assert!((mean_xx / v(0, 0) - 1.0).abs() < 1e-9);
+    let consts = res.table("stiffness.constants");
+    let ex = consts.f64_column("E_x").unwrap()[0];
+    assert!(ex > 43e9 && ex < 66.9e9);
+    // Conductivity: between the series and parallel means, diagonal dominated.
+    let kt = res
+        .artifact("conductivity.conductivity")
+        .as_tensor()
+        .unwrap();
+    let (par, ser) = (phi * 7.7 + (1.0 - phi), 1.0 / (phi / 7.7 + (1.0 - phi)));
+    for i in 0..3 {
+        let kii = kt.values[4 * i];
+        assert!(
+            kii > ser && kii < par,
+            "k_{i}{i} = {kii} not in [{ser}, {par}]"
+        );
+    }
+    for f in [
+        "stiffness.csv",
+        "constants.csv",
+        "history.csv",
+        "conductivity.csv",
+        "image.vti",
+    ] {
+        let p = out.path().join("elasticity").join(f);
+        assert!(p.is_file(), "{} missing", p.display());
+    }
+}
+
+#[test]
+fn a_bad_tolerance_is_a_parameter_error() {
+    let yaml = r#"
+name: t
+stages:
+  - id: pack
+    use: packing.rsa
+    with: { size: [100 um, 100 um, 100 um], radius: { kind: fixed, value: 20 um }, volume_fraction: 0.2 }
+  - id: voxels
+    use: voxelize.packing
+    in: { packing: pack.packing }
+    with: { voxel_size: 10 um, phase_name: sand }
+  - id: stiffness
+    use: elasticity.fft
+    in: { image: voxels.image }
+    with: { tolerance: 2 }
+"#;
+    let err = run_yaml(&registry(), yaml)
+        .err()
+        .expect("tolerance 2 is refused");
+    assert!(err.to_string().contains("tolerance"), "{err}");
+}
