@@ -9,9 +9,11 @@ VENV ?= .venv
 PYTHON ?= python3
 APT_PACKAGES := libhdf5-dev libnetcdf-dev pkg-config python3-venv
 PIPE := $(CURDIR)/target/release/pipe
-DEMO_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clumps.yaml pipelines/mcm.yaml
+DEMO_PIPELINES := pipelines/sandcore.yaml
+MORE_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clumps.yaml pipelines/mcm.yaml \
+	pipelines/binder.yaml pipelines/elasticity.yaml pipelines/permeability.yaml pipelines/sandcore-quick.yaml
 
-.PHONY: all sysdeps pydeps build demo test lint rust-test interop bench readme-stages clean
+.PHONY: all sysdeps pydeps build demo demo-all test lint rust-test interop bench readme-stages clean
 
 all: build
 
@@ -40,6 +42,10 @@ build: sysdeps
 demo: build
 	@for p in $(DEMO_PIPELINES); do echo "== $(PIPE) run $$p"; $(PIPE) run $$p || exit $$?; done
 	@echo "outputs are under out/ (open .vti/.vtp/.pvd/.vtkhdf in ParaView or pyvista)"
+
+# Every shipped pipeline.
+demo-all: build
+	@for p in $(DEMO_PIPELINES) $(MORE_PIPELINES); do echo "== $(PIPE) run $$p"; $(PIPE) run $$p || exit $$?; done
 
 lint: sysdeps
 	$(CARGO) fmt --all --check
