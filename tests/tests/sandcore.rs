@@ -35,7 +35,10 @@ fn quick_sand_core_chain_gives_bounded_properties() {
     let voigt_e = phi_s * 66.9e9 + phi_b * 43e9;
     for axis in ["E_x", "E_y", "E_z"] {
         let e = r.column("stiffness.constants", axis)[0];
-        assert!(e > 0.0 && e < voigt_e, "{axis} = {e:e}, Voigt bound {voigt_e:e}");
+        assert!(
+            e > 0.0 && e < voigt_e,
+            "{axis} = {e:e}, Voigt bound {voigt_e:e}"
+        );
     }
 
     // Conductivity: symmetric, between 0 (pores insulate) and the Voigt mean.
@@ -54,9 +57,17 @@ fn quick_sand_core_chain_gives_bounded_properties() {
     }
     for (i, j) in [(0, 1), (0, 2), (1, 2)] {
         let (a, b) = (kappa.values[3 * i + j], kappa.values[3 * j + i]);
-        assert!((a - b).abs() <= 0.05 * kappa.values[0], "kappa_{i}{j} {a:e} vs {b:e}");
+        assert!(
+            (a - b).abs() <= 0.05 * kappa.values[0],
+            "kappa_{i}{j} {a:e} vs {b:e}"
+        );
     }
-    for f in ["image.vti", "constants.csv", "permeability.json", "velocity.vti"] {
+    for f in [
+        "image.vti",
+        "constants.csv",
+        "permeability.json",
+        "velocity.vti",
+    ] {
         assert!(dir.path().join("sandcore-quick").join(f).is_file(), "{f}");
     }
 }

@@ -104,49 +104,64 @@ impl<T: Real> Fft3<T> {
             (&self.iy, &self.iz)
         };
         if ny > 1 {
-            data.par_chunks_mut(nkx * ny).for_each(|plane| {
-                // Gather the plane transposed (ny contiguous per kx), transform all lines at
-                // once, scatter back.
-                let mut buf = vec![Complex::new(T::zero(), T::zero()); nkx * ny];
-                for y in 0..ny {
-                    for kx in 0..nkx {
-                        buf[kx * ny + y] = plane[y * nkx + kx];
+            // The transpose buffer and scratch are made once per rayon job, not per plane: at
+            // 140^3 a plane buffer is ~160 kB, above glibc's initial mmap threshold, so a fresh
+            // `vec!` per plane costs an mmap, page faults and zeroing every time.
+            let zero = Complex::new(T::zero(), T::zero());
+            data.par_chunks_mut(nkx * ny).for_each_init(
+                || {
+                    (
+                        vec![zero; nkx * ny],
+                        vec![zero; fy.get_inplace_scratch_len()],
+                    )
+                },
+                |(buf, scratch), plane| {
+                    // Gather the plane transposed (ny contiguous per kx), transform all lines at
+                    // once, scatter back.
+                    for y in 0..ny {
+                        for kx in 0..nkx {
+                            buf[kx * ny + y] = plane[y * nkx + kx];
+                        }
                     }
-                }
-                let mut scratch =
-                    vec![Complex::new(T::zero(), T::zero()); fy.get_inplace_scratch_len()];
-                fy.process_with_scratch(&mut buf, &mut scratch);
-                for y in 0..ny {
-                    for kx in 0..nkx {
-                        plane[y * nkx + kx] = buf[kx * ny + y];
+                    fy.process_with_scratch(buf, scratch);
+                    for y in 0..ny {
+                        for kx in 0..nkx {
+                            plane[y * nkx + kx] = buf[kx * ny + y];
+                        }
                     }
-                }
-            });
+                },
+            );
         }
         if nz > 1 {
             // Lines along z have stride nkx * ny; each task owns the rows of one y, so the
             // data is shared through a raw pointer with disjoint index sets.
             let ptr = SendPtr(data.as_mut_ptr());
             let stride = nkx * ny;
-            (0..ny).into_par_iter().for_each(|y| {
-                let p = &ptr;
-                let mut buf = vec![Complex::new(T::zero(), T::zero()); nkx * nz];
-                for z in 0..nz {
-                    for kx in 0..nkx {
-                        // SAFETY: index kx + nkx*y + stride*z is touched only by task y.
-                        buf[kx * nz + z] = unsafe { *p.0.add(kx + nkx * y + stride * z) };
+            let zero = Complex::new(T::zero(), T::zero());
+            (0..ny).into_par_iter().for_each_init(
+                || {
+                    (
+                        vec![zero; nkx * nz],
+                        vec![zero; fz.get_inplace_scratch_len()],
+                    )
+                },
+                |(buf, scratch), y| {
+                    let p = &ptr;
+                    for z in 0..nz {
+                        for kx in 0..nkx {
+                            // SAFETY: index kx + nkx*y + stride*z is touched only by task y.
+                            buf[kx * nz + z] = unsafe { *p.0.add(kx + nkx * y + stride * z) };
+                        }
                     }
-                }
-                let mut scratch =
-                    vec![Complex::new(T::zero(), T::zero()); fz.get_inplace_scratch_len()];
-                fz.process_with_scratch(&mut buf, &mut scratch);
-                for z in 0..nz {
-                    for kx in 0..nkx {
-                        // SAFETY: as above, disjoint across tasks.
-                        unsafe { *p.0.add(kx + nkx * y + stride * z) = buf[kx * nz + z] };
+                    fz.process_with_scratch(buf, scratch);
+                    for z in 0..nz {
+                        for kx in 0..nkx {
+                            // SAFETY: as above, disjoint across tasks.
+                            unsafe { *p.0.add(kx + nkx * y + stride * z) = buf[kx * nz + z] };
+                        }
                     }
-                }
-            });
+                },
+            );
         }
     }
 }

@@ -131,6 +131,22 @@ fn axpy<T: Real>(a: f64, x: &[T], y: &mut [T]) {
         .for_each(|(y, x)| y.iter_mut().zip(x).for_each(|(y, &x)| *y = *y + a * x));
 }
 
+/// `u += a p` and `r -= a q` in one pass over the four vectors (one parallel dispatch
+/// instead of two; every element is still updated by the same formula, so the result does not
+/// depend on the thread count).
+fn update_ur<T: Real>(a: f64, p: &[T], q: &[T], u: &mut [T], r: &mut [T]) {
+    let a = T::of(a);
+    u.par_chunks_mut(CHUNK)
+        .zip(r.par_chunks_mut(CHUNK))
+        .zip(p.par_chunks(CHUNK).zip(q.par_chunks(CHUNK)))
+        .for_each(|((u, r), (p, q))| {
+            for i in 0..u.len() {
+                u[i] = u[i] + a * p[i];
+                r[i] = r[i] - a * q[i];
+            }
+        });
+}
+
 /// `p = z + b p`.
 fn xpby<T: Real>(z: &[T], b: f64, p: &mut [T]) {
     let b = T::of(b);
@@ -213,8 +229,7 @@ pub fn solve<T: Real, P: CellProblem<T>>(
                     ));
                 }
                 let alpha = rz / pq;
-                axpy(alpha, &p, &mut u);
-                axpy(-alpha, &q, &mut r);
+                update_ur(alpha, &p, &q, &mut u, &mut r);
                 problem.precondition(&r, &mut z);
                 let rz_new = dot(&r, &z);
                 if rz_new < 0.0 {
