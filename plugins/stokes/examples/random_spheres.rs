@@ -62,7 +62,7 @@ fn main() {
     };
     let cycle = CycleSettings {
         sweeps: env("STOKES_SWEEPS", 1.0) as usize,
-        over_correction: env("STOKES_OC", 1.5) as f32,
+        over_correction: env("STOKES_OC", CycleSettings::default().over_correction as f64) as f32,
         coarsest_sweeps: env("STOKES_COARSEST", 20.0) as usize,
     };
     let dims = Dims::new([n, n, n]);

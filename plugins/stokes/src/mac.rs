@@ -281,9 +281,15 @@ impl Stokes<'_> {
     /// Row `(block, x, y, z)` of K applied to `v`.
     #[inline]
     pub fn row(&self, v: &[f32], block: usize, x: usize, y: usize, z: usize) -> f32 {
-        let n = self.dims.len();
         let i = self.dims.index(x, y, z);
-        let nb = self.dims.neighbours(x, y, z);
+        self.row_at(v, block, i, &self.dims.neighbours(x, y, z))
+    }
+
+    /// Row `(block, i)` of K applied to `v`, given the neighbours `nb` of voxel `i` in the
+    /// order of [`Dims::neighbours`].
+    #[inline]
+    pub fn row_at(&self, v: &[f32], block: usize, i: usize, nb: &[usize; 6]) -> f32 {
+        let n = self.dims.len();
         let m = self.mask[i];
         if block < 3 {
             let a = block;
@@ -361,10 +367,23 @@ impl Stokes<'_> {
             .map(|(item, o)| {
                 let (block, z) = (item / nz, item % nz);
                 let mut q = 0.0f64;
-                for y in 0..self.dims.n[1] {
-                    for x in 0..self.dims.n[0] {
-                        let l = x + self.dims.n[0] * y;
-                        let kv = self.row(v, block, x, y, z);
+                let [nx, ny, nz] = self.dims.n;
+                let zm = if z == 0 { nz - 1 } else { z - 1 };
+                let zp = if z + 1 == nz { 0 } else { z + 1 };
+                for y in 0..ny {
+                    // Neighbour indices per row: the values of `Dims::neighbours` without its
+                    // per-point wrap tests.
+                    let ym = if y == 0 { ny - 1 } else { y - 1 };
+                    let yp = if y + 1 == ny { 0 } else { y + 1 };
+                    let row = self.dims.index(0, y, z);
+                    let (rym, ryp) = (self.dims.index(0, ym, z), self.dims.index(0, yp, z));
+                    let (rzm, rzp) = (self.dims.index(0, y, zm), self.dims.index(0, y, zp));
+                    for x in 0..nx {
+                        let l = x + nx * y;
+                        let xm = if x == 0 { nx - 1 } else { x - 1 };
+                        let xp = if x + 1 == nx { 0 } else { x + 1 };
+                        let nb = [row + xm, row + xp, rym + x, ryp + x, rzm + x, rzp + x];
+                        let kv = self.row_at(v, block, row + x, &nb);
                         q += kv as f64 * v[item * slab + l] as f64;
                         o[l] = kv - b * o[l];
                     }

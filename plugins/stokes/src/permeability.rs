@@ -67,7 +67,8 @@ pub struct PermeabilityParams {
     #[param(default = 0.0)]
     pub memory_limit_gib: f64,
     /// Multigrid coarse-correction scale (piecewise-constant prolongation undershoots; 1 to 2).
-    #[param(default = 1.5)]
+    /// 1.8 measured 10-14 % fewer iterations than 1.5 on random packings at 64^3 and 96^3.
+    #[param(default = 1.8)]
     pub over_correction: f64,
 }
 
@@ -180,10 +181,11 @@ impl TypedStage for PermeabilityStage {
              cell away (ghost value -u). The symmetric saddle-point system is solved by MINRES \
              with a block-diagonal preconditioner: one symmetric geometric-multigrid V-cycle \
              (Galerkin 2x2x2 aggregation, red-black Gauss-Seidel) per velocity component and \
-             the pressure mass matrix / mu for the Schur complement; iteration counts stay \
-             roughly constant under refinement. Pore components that connect to no periodic \
+             for the Schur complement the pressure mass matrix / mu plus one V-cycle of a \
+             pressure Laplacian weighted by the local wall resistance (Cahouet-Chabard); \
+             iteration counts grow only slowly under refinement. Pore components that connect to no periodic \
              image of themselves are excluded; a direction along which nothing percolates \
-             gets kappa = 0 with a note, without a solve. Memory: about 105 bytes per voxel \
+             gets kappa = 0 with a note, without a solve. Memory: about 117 bytes per voxel \
              (f32 vectors); the stage refuses an image that does not fit.",
         )
         .inputs(vec![PortSpec::new(
