@@ -360,9 +360,21 @@ pub fn min_distance(cands: &[Candidate], p: [f64; 3], below: f64, above: f64) ->
     best
 }
 
+/// What a search for the smallest distances counts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Over {
+    /// Every sphere (and every periodic image of it) on its own.
+    Spheres,
+    /// Every body once, at the smallest distance of its spheres (the exact outward distance
+    /// to a clump, eq. 2.12-2.13 of Donval et al. 2025). Periodic images of one body are one
+    /// body here, which matters only in cells smaller than a body plus the window.
+    Bodies,
+}
+
 /// The `out.len()` smallest signed distances from `p` (ascending) among candidates within
-/// `window` of the smallest; returns how many were found. Candidates further than `beyond`
-/// are not looked at when nothing closer was found (the caller does not need them).
+/// `window` of the smallest, counted `over` spheres or bodies; `ids` receives the sphere or
+/// body of each entry. Returns how many were found. Candidates further than `beyond` are not
+/// looked at when nothing closer was found (the caller does not need them).
 /// `give_up(found, bound)` is asked every few candidates with the distances found so far and
 /// a lower bound of every distance still to come; when it says so the search stops and
 /// returns 0 (the caller knows the answer cannot matter).
@@ -370,9 +382,9 @@ pub fn min_distance(cands: &[Candidate], p: [f64; 3], below: f64, above: f64) ->
 pub fn smallest_distances(
     cands: &[Candidate],
     p: [f64; 3],
-    window: f64,
-    beyond: f64,
-    out: &mut [f64],
+    over: Over,
+    (window, beyond): (f64, f64),
+    (out, ids): (&mut [f64], &mut [u32]),
     give_up: impl Fn(&[f64], f64) -> bool,
 ) -> usize {
     let k = out.len();
@@ -391,59 +403,15 @@ pub fn smallest_distances(
             break;
         }
         let d = c.distance(p);
-        if n == k && d >= out[k - 1] {
-            continue;
-        }
-        // Insertion into the sorted prefix.
-        let mut i = if n < k { n } else { k - 1 };
-        while i > 0 && out[i - 1] > d {
-            out[i] = out[i - 1];
-            i -= 1;
-        }
-        out[i] = d;
-        if n < k {
-            n += 1;
-        }
-    }
-    // Drop entries outside the window of the smallest (they were kept only while the
-    // smallest was not yet known).
-    while n > 1 && out[n - 1] > out[0] + window {
-        n -= 1;
-    }
-    n
-}
-
-/// Like [`smallest_distances`] (with the same `give_up`), but over bodies: each body counts once, with the smallest
-/// distance of its spheres (the exact outward distance to a clump, eq. 2.12-2.13 of Donval
-/// et al. 2025). `bodies` receives the body of each entry. Periodic images of one body are
-/// one body here, which matters only in cells smaller than a body plus the window.
-#[inline]
-pub fn smallest_body_distances(
-    cands: &[Candidate],
-    p: [f64; 3],
-    window: f64,
-    beyond: f64,
-    out: &mut [f64],
-    bodies: &mut [u32],
-    give_up: impl Fn(&[f64], f64) -> bool,
-) -> usize {
-    let k = out.len();
-    let mut n = 0usize;
-    for (seen, c) in cands.iter().enumerate() {
-        if seen % GIVE_UP_EVERY == GIVE_UP_EVERY - 1 && give_up(&out[..n], c.lower_bound) {
-            return 0;
-        }
-        let kth = if n == k { out[k - 1] } else { f64::INFINITY };
-        let limit = if n == 0 {
-            beyond
-        } else {
-            kth.min(out[0] + window)
+        let id = match over {
+            Over::Spheres => c.sphere,
+            Over::Bodies => c.body,
         };
-        if c.lower_bound > limit {
-            break;
-        }
-        let d = c.distance(p);
-        let mut i = match bodies[..n].iter().position(|&b| b == c.body) {
+        let listed = match over {
+            Over::Spheres => None,
+            Over::Bodies => ids[..n].iter().position(|&b| b == id),
+        };
+        let mut i = match listed {
             Some(j) if d < out[j] => j,
             Some(_) => continue,
             None if n < k => {
@@ -453,15 +421,17 @@ pub fn smallest_body_distances(
             None if d < out[k - 1] => k - 1,
             None => continue,
         };
-        // Move the entry up to its place.
+        // Move the entry up to its place in the sorted prefix.
         while i > 0 && out[i - 1] > d {
             out[i] = out[i - 1];
-            bodies[i] = bodies[i - 1];
+            ids[i] = ids[i - 1];
             i -= 1;
         }
         out[i] = d;
-        bodies[i] = c.body;
+        ids[i] = id;
     }
+    // Drop entries outside the window of the smallest (they were kept only while the
+    // smallest was not yet known).
     while n > 1 && out[n - 1] > out[0] + window {
         n -= 1;
     }
@@ -547,7 +517,15 @@ mod tests {
                             *bad += 1;
                         }
                         let mut out = [0.0; 4];
-                        let n = smallest_distances(cands, p, 0.05, reach, &mut out, |_, _| false);
+                        let mut ids = [0u32; 4];
+                        let n = smallest_distances(
+                            cands,
+                            p,
+                            Over::Spheres,
+                            (0.05, reach),
+                            (&mut out, &mut ids),
+                            |_, _| false,
+                        );
                         let expect: Vec<f64> = want
                             .iter()
                             .copied()
@@ -566,13 +544,12 @@ mod tests {
                         }
                         let want = brute(&g, &sph, p, true);
                         let mut bodies = [0u32; 4];
-                        let n = smallest_body_distances(
+                        let n = smallest_distances(
                             cands,
                             p,
-                            0.05,
-                            reach,
-                            &mut out,
-                            &mut bodies,
+                            Over::Bodies,
+                            (0.05, reach),
+                            (&mut out, &mut bodies),
                             |_, _| false,
                         );
                         let expect: Vec<f64> = want

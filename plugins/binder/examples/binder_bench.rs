@@ -25,6 +25,7 @@ fn registry() -> Registry {
     grainpipe_clumps::register(&mut r);
     grainpipe_mcm::register(&mut r);
     grainpipe_binder::register(&mut r);
+    grainpipe_analysis::register(&mut r);
     r
 }
 

@@ -1,13 +1,13 @@
 //! `binder.closing`: the morphological-closing binder (Schneider et al. 2018; Münch and
 //! Holzer 2008) that the level set replaces, kept as the baseline it is compared with.
 
-use crate::common::{report, targets, BinderImage, Passes};
+use crate::common::{ports, report, targets, BinderImage, Passes};
 use crate::edt::squared_distance;
 use crate::smooth_union::{smooth_union, BinderTarget, SmoothUnionSpec};
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
-    input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs,
-    PortSpec, Preflight, RunContext, StageError, StageInfo, TypedStage,
+    input, params, Artifact, Grid, InputMetas, Inputs, Outputs, Preflight, RunContext, StageError,
+    StageInfo, TypedStage,
 };
 
 #[params]
@@ -42,10 +42,11 @@ impl TypedStage for Closing {
     type Plan = Option<Grid>;
 
     fn info(&self) -> StageInfo {
-        StageInfo::new(
-            "binder.closing",
-            "1.0.0",
-            "Adds binder to a packing by a morphological closing of its voxel image (the \
+        ports(
+            StageInfo::new(
+                "binder.closing",
+                "1.0.0",
+                "Adds binder to a packing by a morphological closing of its voxel image (the \
              approach of Schneider et al. 2018 that the level-set binder of Donval et al. \
              2025, section 2.3, replaces): the sand is dilated and then eroded by a ball of \
              the given radius on the voxel grid, and binder is the closed set minus the sand. \
@@ -54,24 +55,9 @@ impl TypedStage for Closing {
              binder.levelset (radii corrected with exact_fractions). Because the closing acts \
              on the grid, its bridges move with the voxel size: use it as the baseline. \
              Memory: 17 bytes per voxel.",
+            ),
+            "target and achieved fractions, closing radius, binder bridges",
         )
-        .inputs(vec![PortSpec::new(
-            "packing",
-            ArtifactKind::Packing,
-            "spheres or clumps (a periodic box wraps)",
-        )])
-        .outputs(vec![
-            PortSpec::new(
-                "image",
-                ArtifactKind::PhaseImage,
-                "0 = pore, 1 = sand, 2 = binder",
-            ),
-            PortSpec::new(
-                "report",
-                ArtifactKind::Table,
-                "target and achieved fractions, closing radius, binder bridges",
-            ),
-        ])
     }
 
     fn preflight(
@@ -79,7 +65,6 @@ impl TypedStage for Closing {
         p: &ClosingParams,
         inputs: &InputMetas,
     ) -> Result<Preflight<Option<Grid>>, StageError> {
-        p.image.check()?;
         if let Some(r) = p.radius {
             if !(r.si() >= 0.0 && r.si().is_finite()) {
                 return Err(StageError::param(
@@ -88,14 +73,7 @@ impl TypedStage for Closing {
                 ));
             }
         }
-        let (grid, voxels) = p.image.plan(inputs)?;
-        Ok(Preflight::from_info(&self.info(), 17 * voxels)
-            .announce("image", p.image.image_meta(&grid, voxels))
-            .announce(
-                "report",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
-            )
-            .with_plan(grid))
+        p.image.preflight(&self.info(), inputs, 17)
     }
 
     fn run(

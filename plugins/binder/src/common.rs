@@ -4,9 +4,26 @@
 use crate::components::count_components;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
-    params, ArtifactKind, ArtifactMeta, Grid, InputMetas, Packing, Phase, PhaseImage, RunContext,
-    StageError, Table,
+    params, ArtifactKind, ArtifactMeta, Grid, InputMetas, Packing, Phase, PhaseImage, PortSpec,
+    Preflight, RunContext, StageError, StageInfo, Table,
 };
+
+/// The input and the two outputs both stages have; `report` says what the report adds.
+pub fn ports(info: StageInfo, report: &'static str) -> StageInfo {
+    info.inputs(vec![PortSpec::new(
+        "packing",
+        ArtifactKind::Packing,
+        "spheres or clumps (a periodic box wraps)",
+    )])
+    .outputs(vec![
+        PortSpec::new(
+            "image",
+            ArtifactKind::PhaseImage,
+            "0 = pore, 1 = sand, 2 = binder",
+        ),
+        PortSpec::new("report", ArtifactKind::Table, report),
+    ])
+}
 use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The image and fraction settings of both binder stages.
@@ -149,16 +166,31 @@ impl BinderImage {
         Ok(Grid::tiling(d.min, d.max, d.periodic, v))
     }
 
-    /// The three-phase image metadata announced at preflight.
-    pub fn image_meta(&self, grid: &Option<Grid>, voxels: u64) -> ArtifactMeta {
-        match grid {
+    /// The preflight both stages share: parameters checked, the grid planned, `image` and
+    /// `report` announced, memory estimated at `bytes_per_voxel`.
+    pub fn preflight(
+        &self,
+        info: &StageInfo,
+        inputs: &InputMetas,
+        bytes_per_voxel: u64,
+    ) -> Result<Preflight<Option<Grid>>, StageError> {
+        self.check()?;
+        let (grid, voxels) = self.plan(inputs)?;
+        let image = match &grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g.clone()),
             None => {
                 let mut m = ArtifactMeta::of(ArtifactKind::PhaseImage);
                 m.count_estimate = voxels;
                 m
             }
-        }
+        };
+        Ok(Preflight::from_info(info, bytes_per_voxel * voxels)
+            .announce("image", image)
+            .announce(
+                "report",
+                ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
+            )
+            .with_plan(grid))
     }
 
     pub fn image(&self, grid: Grid, labels: Vec<u8>) -> PhaseImage {

@@ -1,6 +1,6 @@
 //! `binder.levelset`: the grid-free binder of Donval et al. (2025), section 2.3.
 
-use crate::common::{report, targets, BinderImage, Passes};
+use crate::common::{ports, report, targets, BinderImage, Passes};
 use crate::smooth_union::{
     level_set, smooth_union, BinderError, BinderTarget, SmoothUnionSpec, Smoothing, MAX_K,
 };
@@ -65,10 +65,11 @@ impl TypedStage for LevelSet {
     type Plan = Option<Grid>;
 
     fn info(&self) -> StageInfo {
-        StageInfo::new(
-            "binder.levelset",
-            "1.0.0",
-            "Adds binder bridges to a packing of spheres or clumps and images it in three \
+        let mut info = ports(
+            StageInfo::new(
+                "binder.levelset",
+                "1.0.0",
+                "Adds binder bridges to a packing of spheres or clumps and images it in three \
              phases (Donval et al. 2025, section 2.3): the signed distances to the spheres \
              (periodic where the packing is) are combined by the scaled LogSumExp of the k \
              smallest (eq. 2.14-2.15); binder is the smoothed union {LSE_a <= 0} minus the \
@@ -80,29 +81,15 @@ impl TypedStage for LevelSet {
              union, found per voxel by a monotone Newton root search), so no re-voxelization \
              loop runs. Memory: one byte per voxel plus 8 bytes per sphere-block pair; the \
              level set adds 4 bytes per voxel.",
-        )
-        .inputs(vec![PortSpec::new(
-            "packing",
-            ArtifactKind::Packing,
-            "spheres or clumps (a periodic box wraps)",
-        )])
-        .outputs(vec![
-            PortSpec::new(
-                "image",
-                ArtifactKind::PhaseImage,
-                "0 = pore, 1 = sand, 2 = binder",
             ),
-            PortSpec::new(
-                "report",
-                ArtifactKind::Table,
-                "target and achieved fractions, a, radius correction, binder bridges",
-            ),
-            PortSpec::new(
-                "level_set",
-                ArtifactKind::Field,
-                "the smoothed signed distance [m] at voxel centres (with level_set: true)",
-            ),
-        ])
+            "target and achieved fractions, a, radius correction, binder bridges",
+        );
+        info.outputs.push(PortSpec::new(
+            "level_set",
+            ArtifactKind::Field,
+            "the smoothed signed distance [m] at voxel centres (with level_set: true)",
+        ));
+        info
     }
 
     fn preflight(
@@ -110,7 +97,6 @@ impl TypedStage for LevelSet {
         p: &LevelSetParams,
         inputs: &InputMetas,
     ) -> Result<Preflight<Option<Grid>>, StageError> {
-        p.image.check()?;
         if !(2..=MAX_K).contains(&p.k) {
             return Err(StageError::param(
                 "k",
@@ -122,25 +108,17 @@ impl TypedStage for LevelSet {
                 return Err(StageError::param("a", "must be a positive length"));
             }
         }
-        let (grid, voxels) = p.image.plan(inputs)?;
-        let bytes = voxels * if p.level_set { 5 } else { 1 };
-        let mut pf = Preflight::from_info(&self.info(), bytes)
-            .announce("image", p.image.image_meta(&grid, voxels))
-            .announce(
-                "report",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
-            );
+        let mut pf = p
+            .image
+            .preflight(&self.info(), inputs, if p.level_set { 5 } else { 1 })?;
         if p.level_set {
-            if let Some(g) = &grid {
-                pf = pf.announce(
-                    "level_set",
-                    ArtifactMeta::on_grid(ArtifactKind::Field, g.clone()),
-                );
+            if let Some(g) = pf.plan.clone() {
+                pf = pf.announce("level_set", ArtifactMeta::on_grid(ArtifactKind::Field, g));
             }
         } else {
             pf.outputs.retain(|k, _| k != "level_set");
         }
-        Ok(pf.with_plan(grid))
+        Ok(pf)
     }
 
     fn run(

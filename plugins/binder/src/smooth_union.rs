@@ -17,7 +17,7 @@
 //! plus the sphere bins; the values near the selected rank are recomputed, not stored.
 
 use grainpipe_core::raster::{
-    min_distance, smallest_body_distances, smallest_distances, Candidate, RasterError, SphereRaster,
+    min_distance, smallest_distances, Candidate, Over, RasterError, SphereRaster,
 };
 use grainpipe_core::{Grid, WorldSphere};
 
@@ -251,19 +251,19 @@ impl Nearest {
         (window, beyond): (f64, f64),
         give_up: impl Fn(&[f64], f64) -> bool,
     ) -> usize {
-        if sm.per_body {
-            smallest_body_distances(
-                cands,
-                p,
-                window,
-                beyond,
-                &mut self.d[..sm.k],
-                &mut self.bodies[..sm.k],
-                give_up,
-            )
+        let over = if sm.per_body {
+            Over::Bodies
         } else {
-            smallest_distances(cands, p, window, beyond, &mut self.d[..sm.k], give_up)
-        }
+            Over::Spheres
+        };
+        smallest_distances(
+            cands,
+            p,
+            over,
+            (window, beyond),
+            (&mut self.d[..sm.k], &mut self.bodies[..sm.k]),
+            give_up,
+        )
     }
 }
 
