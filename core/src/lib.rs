@@ -25,8 +25,8 @@ pub use params::{ParamType, Params};
 pub use registry::{Exporter, Registry};
 pub use serde_json;
 pub use stage::{
-    input, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, Prepared, RunContext,
-    Stage, StageError, StageInfo, TypedStage,
+    announced_grid, input, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, Prepared,
+    RunContext, Stage, StageError, StageInfo, TypedStage,
 };
 
 /// grainpipe's version, recorded in every output's provenance.

@@ -5,7 +5,7 @@
 //! object-safe [`Stage`], whose parameters are JSON values (the same representation crosses
 //! the C ABI for third-party plugins).
 
-use crate::model::{Artifact, ArtifactKind, ArtifactMeta};
+use crate::model::{Artifact, ArtifactKind, ArtifactMeta, Grid};
 use crate::params::{unknown_keys, Params};
 use indexmap::IndexMap;
 use rand::SeedableRng;
@@ -253,6 +253,21 @@ pub fn input<'a, T>(
         .get(port)
         .ok_or_else(|| StageError::input(port, "not connected"))?;
     get(a).ok_or_else(|| StageError::input(port, format!("got a {}", a.kind())))
+}
+
+/// The grid announced upstream for the image at `port`, for preflights whose memory estimate
+/// needs it (the image solvers); an error naming the port when it is not known before running.
+pub fn announced_grid(inputs: &InputMetas, port: &str) -> Result<Grid, StageError> {
+    inputs
+        .get(port)
+        .and_then(|m| m.grid.clone())
+        .ok_or_else(|| {
+            StageError::input(
+                port,
+                "the grid of the image is not known before running; give the upstream stage a \
+             voxel_size so the memory can be estimated",
+            )
+        })
 }
 
 /// What a stage's preflight prepared for its run (the typed parameters and the stage's plan),

@@ -210,16 +210,7 @@ impl TypedStage for ElasticityFft {
         inputs: &InputMetas,
     ) -> Result<Preflight<ElasticityPlan>, StageError> {
         check_params(p)?;
-        let grid = inputs
-            .get("image")
-            .and_then(|m| m.grid.clone())
-            .ok_or_else(|| {
-                StageError::input(
-                    "image",
-                    "the grid of the image is not known before running; give the upstream \
-                     stage a voxel_size so the memory can be estimated",
-                )
-            })?;
+        let grid = grainpipe_core::announced_grid(inputs, "image")?;
         if !grid.periodic.iter().all(|&b| b) {
             return Err(StageError::input(
                 "image",

@@ -230,16 +230,7 @@ impl TypedStage for PermeabilityStage {
         inputs: &InputMetas,
     ) -> Result<Preflight<Grid>, StageError> {
         check_params(p)?;
-        let grid = inputs
-            .get("image")
-            .and_then(|m| m.grid.clone())
-            .ok_or_else(|| {
-                StageError::input(
-                    "image",
-                    "the grid of the image is not known before running; give the upstream \
-                     stage a voxel_size so the memory can be estimated",
-                )
-            })?;
+        let grid = grainpipe_core::announced_grid(inputs, "image")?;
         check_grid(&grid)?;
         let n = grid.voxel_count() as f64;
         let bpv = bytes_per_voxel(p.fields);
