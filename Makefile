@@ -7,13 +7,14 @@ SHELL := /bin/bash
 CARGO ?= cargo
 VENV ?= .venv
 PYTHON ?= python3
-APT_PACKAGES := libhdf5-dev libnetcdf-dev pkg-config python3-venv
+APT_PACKAGES := libhdf5-dev libnetcdf-dev pkg-config python3-venv chromium fonts-dejavu-core
 PIPE := $(CURDIR)/target/release/pipe
 DEMO_PIPELINES := pipelines/sandcore.yaml
 MORE_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clumps.yaml pipelines/mcm.yaml \
-	pipelines/binder.yaml pipelines/elasticity.yaml pipelines/permeability.yaml pipelines/sandcore-quick.yaml
+	pipelines/binder.yaml pipelines/elasticity.yaml pipelines/permeability.yaml pipelines/sandcore-quick.yaml \
+	pipelines/sandcore-spheres.yaml pipelines/cemented2d.yaml
 
-.PHONY: all sysdeps pydeps build demo demo-all test lint rust-test interop bench readme-stages clean
+.PHONY: all sysdeps pydeps build demo demo-all test lint rust-test interop python python-test bench readme-stages clean test-cluster
 
 all: build
 
@@ -36,12 +37,14 @@ $(VENV)/.installed: tests/interop/requirements.txt
 
 pydeps: $(VENV)/.installed
 
+# grainpipe-python in the same build: one feature set (pyo3 turns on syn features), so the
+# wheel build below only compiles and links the extension instead of the whole tree again.
 build: sysdeps
-	$(CARGO) build --release -p grainpipe-cli
+	$(CARGO) build --release -p grainpipe-cli -p grainpipe-python
 
 demo: build
-	@for p in $(DEMO_PIPELINES); do echo "== $(PIPE) run $$p"; $(PIPE) run $$p || exit $$?; done
-	@echo "outputs are under out/ (open .vti/.vtp/.pvd/.vtkhdf in ParaView or pyvista)"
+	@for p in $(DEMO_PIPELINES); do echo "== $(PIPE) run $$p --report"; $(PIPE) run $$p --report || exit $$?; done
+	@echo "outputs are under out/ (open out/sandcore/report.html in a browser; .vti/.vtp/.pvd/.vtkhdf in ParaView or pyvista)"
 
 # Every shipped pipeline.
 demo-all: build
@@ -57,7 +60,29 @@ rust-test: sysdeps
 interop: sysdeps pydeps build
 	PIPE=$(PIPE) $(VENV)/bin/python -m pytest -q tests/interop
 
-test: lint rust-test interop
+# The `grainpipe` Python package (python/): an abi3 wheel built by maturin into target/wheels
+# (the workspace target dir), installed into .venv. `--auditwheel skip`: the wheel links the
+# system libhdf5/libnetcdf instead of bundling them.
+$(VENV)/.python-deps: $(VENV)/.installed tests/python/requirements.txt
+	$(VENV)/bin/pip install -q -r tests/python/requirements.txt
+	touch $@
+
+python: sysdeps build $(VENV)/.python-deps
+	rm -f target/wheels/grainpipe-*.whl
+	$(VENV)/bin/maturin build --release -q -m python/Cargo.toml -i $(VENV)/bin/python --auditwheel skip -o target/wheels
+	$(VENV)/bin/pip install -q --force-reinstall --no-deps target/wheels/grainpipe-*.whl
+
+python-test: python
+	$(CARGO) build --release -q -p grainpipe-plugin-example
+	PIPE=$(PIPE) GRAINPIPE_PLUGIN_EXAMPLE=$(CURDIR)/target/release/libgrainpipe_plugin_example.so \
+	  $(VENV)/bin/python -m pytest -q tests/python
+
+test: lint rust-test interop python-test
+
+# Sweeps on a real one-node Slurm cluster (slurm-wlm + munge, installed and started by the
+# script; skipped with a message where they cannot be installed).
+test-cluster: build
+	tests/cluster/run.sh
 
 bench: build
 	@for d in plugins/*/examples/*_bench.rs; do \

@@ -24,26 +24,53 @@ pub fn builtin_registry() -> Registry {
     grainpipe_analysis::register(&mut r);
     grainpipe_fft::register(&mut r);
     grainpipe_stokes::register(&mut r);
+    grainpipe_cemented::register(&mut r);
+    grainpipe_peridynamics::register(&mut r);
+    grainpipe_report::register(&mut r);
     r
 }
 
 /// Memory the system can still give, from /proc/meminfo (Linux); `None` elsewhere.
 pub fn available_memory() -> Option<u64> {
-    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
-    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
+    grainpipe_core::engine::available_memory()
 }
 
 /// Loads plugin libraries into a registry, each library once.
+///
+/// Trust model: loading a library runs its code. Libraries the user configured
+/// (`--plugin-dir`, `GRAINPIPE_PLUGIN_PATH`) are trusted. A library named by a pipeline
+/// file's `plugins:` is someone else's choice: it loads only when it lies in a configured
+/// location, or when the user passed `--allow-plugins`; otherwise the pipeline is refused
+/// before anything is loaded, so `pipe validate` of a downloaded file runs no foreign code.
 #[derive(Default)]
 pub struct PluginLoader {
     loaded: HashSet<PathBuf>,
+    /// Configured locations (canonical): directories and files given on the command line or
+    /// in the environment.
+    trusted: Vec<PathBuf>,
+    /// `--allow-plugins`: trust the libraries a pipeline file names.
+    pub allow_pipeline_plugins: bool,
 }
 
 impl PluginLoader {
-    /// Loads every library found at `locations` (files, or directories of libraries).
+    /// Loads every library found at `locations` (files, or directories of libraries); these
+    /// are the user's own configuration and become trusted locations.
     pub fn load(&mut self, registry: &mut Registry, locations: &[PathBuf]) -> Result<(), String> {
+        for loc in locations {
+            if let Ok(c) = std::fs::canonicalize(loc) {
+                if !self.trusted.contains(&c) {
+                    self.trusted.push(c);
+                }
+            }
+        }
+        self.load_libraries(registry, locations)
+    }
+
+    fn load_libraries(
+        &mut self,
+        registry: &mut Registry,
+        locations: &[PathBuf],
+    ) -> Result<(), String> {
         for lib in expand_locations(locations)? {
             // An absolute path: dlopen would search the system library path for a bare name.
             let key = std::fs::canonicalize(&lib)
@@ -55,15 +82,47 @@ impl PluginLoader {
         Ok(())
     }
 
-    /// Loads the `plugins:` of a pipeline; errors point at the YAML entry.
+    /// Whether a canonical library path lies in (or is) a configured location.
+    fn is_trusted(&self, lib: &Path) -> bool {
+        self.trusted
+            .iter()
+            .any(|t| lib == t.as_path() || lib.parent() == Some(t.as_path()))
+    }
+
+    /// Loads the `plugins:` of a pipeline; errors point at the YAML entry. Libraries outside
+    /// the configured locations need `--allow-plugins` (see [`PluginLoader`]).
     pub fn load_for(
         &mut self,
         registry: &mut Registry,
         doc: &PipelineDoc,
     ) -> Result<(), PipelineError> {
+        let at = |loc, e| PipelineError::input(Path::new(&doc.file), Some(loc), e);
         for (path, loc) in &doc.plugins {
-            self.load(registry, std::slice::from_ref(path))
-                .map_err(|e| PipelineError::input(Path::new(&doc.file), Some(*loc), e))?;
+            if !self.allow_pipeline_plugins {
+                let libs = expand_locations(std::slice::from_ref(path)).map_err(|e| at(*loc, e))?;
+                for lib in libs {
+                    let key = std::fs::canonicalize(&lib)
+                        .map_err(|e| at(*loc, format!("plugin {}: {e}", lib.display())))?;
+                    if !self.is_trusted(&key) {
+                        return Err(at(
+                            *loc,
+                            format!(
+                                "the pipeline asks to load the plugin library {}, which would \
+                                 run its code; not loaded",
+                                key.display()
+                            ),
+                        )
+                        .with_help(Some(
+                            "if you trust this pipeline file, pass --allow-plugins, or put the \
+                             library in a directory given by --plugin-dir or \
+                             GRAINPIPE_PLUGIN_PATH"
+                                .into(),
+                        )));
+                    }
+                }
+            }
+            self.load_libraries(registry, std::slice::from_ref(path))
+                .map_err(|e| at(*loc, e))?;
         }
         Ok(())
     }

@@ -27,6 +27,10 @@ struct Cli {
     /// GRAINPIPE_PLUGIN_PATH and `plugins:` in the pipeline).
     #[arg(long = "plugin-dir", value_name = "DIR", global = true)]
     plugin_dirs: Vec<PathBuf>,
+    /// Trust the plugin libraries a pipeline file names in `plugins:` (loading a library
+    /// runs its code; without this flag only --plugin-dir / GRAINPIPE_PLUGIN_PATH load).
+    #[arg(long = "allow-plugins", global = true)]
+    allow_plugins: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -64,6 +68,14 @@ enum Command {
         /// Worker threads (default: all cores). Results do not depend on it.
         #[arg(long)]
         threads: Option<usize>,
+        /// Run directory: every export moves into DIR (a path under `out/` keeps the part
+        /// after `out/`) and the run record (run.json, report-data/) is written there.
+        /// Default: the exports' own paths, the record in their common parent directory.
+        #[arg(long, value_name = "DIR")]
+        out: Option<PathBuf>,
+        /// Also write the run's HTML report (DIR/report.html, as `pipe report DIR` does).
+        #[arg(long)]
+        report: bool,
     },
     /// Check a pipeline (YAML, stages, parameters, wiring, memory) without running it.
     Validate {
@@ -86,12 +98,19 @@ enum Command {
     },
     /// Print the JSON Schema of pipeline files (for editors and validators).
     Schema,
+    /// Run a pipeline over a grid of parameter values and realizations (locally or on Slurm).
+    Sweep(Box<grainpipe_sweep::SweepArgs>),
+    /// Resolution (speed against accuracy) study of one pipeline parameter.
+    Study(Box<grainpipe_sweep::StudyArgs>),
+    /// Write a self-contained HTML report of a run or a sweep directory.
+    Report(grainpipe_report::ReportArgs),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let mut registry = builtin_registry();
     let mut loader = PluginLoader::default();
+    loader.allow_pipeline_plugins = cli.allow_plugins;
     let mut locations = cli.plugin_dirs.clone();
     locations.extend(grainpipe_core::plugin_host::env_locations());
     if let Err(e) = loader.load(&mut registry, &locations) {
@@ -132,6 +151,19 @@ fn main() -> ExitCode {
                 }
             }
         }
+        Command::Sweep(args) => grainpipe_sweep::sweep_command(
+            *args,
+            &mut registry,
+            &mut |r, d| loader.load_for(r, d),
+            &cli.plugin_dirs,
+        ),
+        Command::Study(args) => grainpipe_sweep::study_command(
+            *args,
+            &mut registry,
+            &mut |r, d| loader.load_for(r, d),
+            &cli.plugin_dirs,
+        ),
+        Command::Report(args) => grainpipe_report::report_command(args, &registry),
         Command::Schema => {
             print!("{}", json_text(&describe::pipeline_schema(&registry)));
             ExitCode::SUCCESS
@@ -176,6 +208,8 @@ fn main() -> ExitCode {
             cache_dir,
             quiet,
             threads,
+            out,
+            report: html_report,
         } => {
             if let Some(t) = threads {
                 if let Err(e) = rayon::ThreadPoolBuilder::new()
@@ -190,6 +224,28 @@ fn main() -> ExitCode {
                 Ok(x) => x,
                 Err(e) => return report(&e),
             };
+            // --out: move the exports into the run directory and plan again (planning is
+            // cheap: preflights allocate nothing large).
+            let (doc, plan) = match &out {
+                Some(dir) => {
+                    let mut doc = doc;
+                    doc.redirect_exports(dir);
+                    let opts = PlanOptions {
+                        targets: pipeline.targets.clone(),
+                        memory_limit: available_memory(),
+                    };
+                    match engine::plan(&doc, &registry, &opts) {
+                        Ok(p) => (doc, p),
+                        Err(e) => return report(&e),
+                    }
+                }
+                None => (doc, plan),
+            };
+            let run_dir = out
+                .clone()
+                .or_else(|| grainpipe_report::default_run_dir(&doc));
+            let started = std::time::SystemTime::now();
+            let clock = std::time::Instant::now();
             let cancel = Arc::new(AtomicBool::new(false));
             let flag = cancel.clone();
             // First Ctrl-C asks stages to stop at their next progress report; a second one exits.
@@ -206,6 +262,38 @@ fn main() -> ExitCode {
             let result = engine::execute(&doc, &plan, &opts, &mut observer);
             if !quiet || result.is_err() {
                 eprint!("\n{}", observer.table());
+            }
+            // The run record, also of a failed run; a record that cannot be written does not
+            // fail a run whose exports were written.
+            if let Some(dir) = &run_dir {
+                let end = grainpipe_report::RunEnd {
+                    doc: &doc,
+                    plan: &plan,
+                    overrides: &pipeline.overrides,
+                    steps: observer.step_records(),
+                    started,
+                    wall_s: clock.elapsed().as_secs_f64(),
+                    result: result.as_ref().map_err(|e| e.to_string()),
+                    written: observer.written().to_vec(),
+                };
+                match grainpipe_report::write_run_dir(dir, &end) {
+                    Ok(()) if !quiet => {
+                        eprintln!("run record: {}", dir.join("run.json").display())
+                    }
+                    Ok(()) => {}
+                    Err(e) => eprintln!("warning: run record not written: {e}"),
+                }
+                if html_report {
+                    match grainpipe_report::render_dir(dir, None) {
+                        Ok(p) if !quiet => eprintln!("report: {}", p.display()),
+                        Ok(_) => {}
+                        Err(e) => eprintln!("warning: report not written: {e}"),
+                    }
+                }
+            } else if html_report {
+                eprintln!(
+                    "warning: no report: the exports share no directory; give one with --out DIR"
+                );
             }
             match result {
                 Ok(_) => ExitCode::SUCCESS,

@@ -97,6 +97,8 @@ pub struct Row {
     pub stage: String,
     pub wall: Duration,
     pub peak_bytes: usize,
+    /// Peak live heap of the whole process during the step (baseline included).
+    pub peak_heap_bytes: usize,
     pub cached: bool,
 }
 
@@ -106,6 +108,7 @@ pub struct TerminalObserver {
     pub cancel: Arc<AtomicBool>,
     pub rows: Vec<Row>,
     base: usize,
+    written: Vec<std::path::PathBuf>,
 }
 
 impl TerminalObserver {
@@ -115,6 +118,7 @@ impl TerminalObserver {
             cancel,
             rows: Vec::new(),
             base: 0,
+            written: Vec::new(),
         }
     }
 
@@ -135,6 +139,31 @@ impl TerminalObserver {
             ));
         }
         s
+    }
+}
+
+impl TerminalObserver {
+    /// The steps run so far, for the run record (`run.json`). Memory is only known when the
+    /// binary installed [`CountingAllocator`]; otherwise the counters stay at zero and the
+    /// record says "not measured".
+    pub fn step_records(&self) -> Vec<grainpipe_report::StepRecord> {
+        let measured = LIVE.load(Ordering::Relaxed) > 0;
+        self.rows
+            .iter()
+            .map(|r| grainpipe_report::StepRecord {
+                step: r.step.clone(),
+                stage: r.stage.clone(),
+                wall_s: r.wall.as_secs_f64(),
+                from_cache: r.cached,
+                peak_bytes: measured.then_some(r.peak_bytes as u64),
+                peak_heap_bytes: measured.then_some(r.peak_heap_bytes as u64),
+            })
+            .collect()
+    }
+
+    /// Paths written so far.
+    pub fn written(&self) -> &[std::path::PathBuf] {
+        &self.written
     }
 }
 
@@ -162,17 +191,19 @@ impl Observer for TerminalObserver {
     }
 
     fn step_finished(&mut self, step: &PlannedStep, stats: &StepStats) {
-        let peak = PEAK.load(Ordering::Relaxed).saturating_sub(self.base);
+        let heap = PEAK.load(Ordering::Relaxed);
         self.rows.push(Row {
             step: step.id.clone(),
             stage: step.stage.info().id.to_string(),
             wall: stats.wall,
-            peak_bytes: peak,
+            peak_bytes: heap.saturating_sub(self.base),
+            peak_heap_bytes: heap,
             cached: stats.from_cache,
         });
     }
 
     fn exported(&mut self, path: &Path) {
+        self.written.push(path.to_path_buf());
         if !self.quiet {
             eprintln!("  wrote {}", path.display());
         }

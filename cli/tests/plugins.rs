@@ -106,7 +106,14 @@ fn rust_and_c_plugins_match_an_independent_profile() {
     std::fs::write(dir.path().join("p.yaml"), PROFILE_PIPELINE).unwrap();
     let plugins = rust_plugins().to_str().unwrap().to_string();
     let (code, _, err) = pipe(
-        &["run", "p.yaml", "--quiet", "--plugin-dir", &plugins],
+        &[
+            "run",
+            "p.yaml",
+            "--quiet",
+            "--allow-plugins",
+            "--plugin-dir",
+            &plugins,
+        ],
         dir.path(),
     );
     assert_eq!(code, 0, "{err}");
@@ -135,7 +142,10 @@ fn rust_and_c_plugins_match_an_independent_profile() {
         assert!((pos[0] - (img.grid.origin[1] + 0.5 * img.grid.spacing[1])).abs() < 1e-15);
     }
     // A second run takes the plugin stages from the cache like built-in ones.
-    let (code, _, err) = pipe(&["run", "p.yaml", "--plugin-dir", &plugins], dir.path());
+    let (code, _, err) = pipe(
+        &["run", "p.yaml", "--allow-plugins", "--plugin-dir", &plugins],
+        dir.path(),
+    );
     assert_eq!(code, 0, "{err}");
     assert!(
         err.lines()

@@ -250,6 +250,23 @@ pub fn plan(
                 ))));
             }
         };
+        check_export_path(&e.to).map_err(|(m, help)| err(doc, e.to_loc, m).with_help(help))?;
+        if let Some(prev) = exports
+            .iter()
+            .find(|p: &&PlannedExport| same_path(&p.path, &e.to))
+        {
+            return Err(err(
+                doc,
+                e.to_loc,
+                format!(
+                    "`{}` is already the target of the export at line {}; the second would \
+                     overwrite the first",
+                    e.to.display(),
+                    prev.loc.line
+                ),
+            )
+            .with_help(Some("give each export its own file name".into())));
+        }
         exports.push(PlannedExport {
             producer,
             port,
@@ -388,6 +405,70 @@ pub fn plan(
         exports,
         memory_bytes: memory,
     })
+}
+
+/// An export target must name a file: not empty, not a directory (`.`, `out/`, an existing
+/// directory), and not an existing non-regular file (a device node, FIFO or socket: an
+/// export replaces its target by rename, which would replace the node itself). Checked at
+/// plan time so a bad path fails before any stage runs. Returns (message, help).
+fn check_export_path(path: &Path) -> Result<(), (String, Option<String>)> {
+    let text = path.as_os_str().to_string_lossy();
+    let suggestion = Some("write a file path such as `out/result.vti`".to_string());
+    if text.trim().is_empty() {
+        return Err(("export `to:` is empty".into(), suggestion));
+    }
+    if text.ends_with('/')
+        || text.ends_with(std::path::MAIN_SEPARATOR)
+        || path.file_name().is_none()
+        || matches!(
+            path.components().next_back(),
+            Some(std::path::Component::CurDir | std::path::Component::ParentDir)
+        )
+    {
+        return Err((
+            format!("export target `{text}` names a directory, not a file"),
+            suggestion,
+        ));
+    }
+    if let Ok(meta) = std::fs::metadata(path) {
+        if meta.is_dir() {
+            return Err((
+                format!("export target `{text}` is an existing directory"),
+                suggestion,
+            ));
+        }
+        if !meta.is_file() {
+            return Err((
+                format!(
+                    "export target `{text}` exists and is not a regular file (a device, FIFO \
+                     or socket); grainpipe only replaces regular files"
+                ),
+                suggestion,
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Whether two export targets are the same file: compared after lexical normalisation
+/// (`a/./b` = `a/b`) and, when the parent directory exists, after resolving it (so
+/// `out/x.vti` and `./out/../out/x.vti` or a symlinked directory collide too).
+fn same_path(a: &Path, b: &Path) -> bool {
+    fn norm(p: &Path) -> PathBuf {
+        let lexical: PathBuf = p
+            .components()
+            .filter(|c| !matches!(c, std::path::Component::CurDir))
+            .collect();
+        let parent = lexical.parent().filter(|d| !d.as_os_str().is_empty());
+        let dir = parent
+            .map(Path::to_path_buf)
+            .unwrap_or_else(|| PathBuf::from("."));
+        match (std::fs::canonicalize(&dir), lexical.file_name()) {
+            (Ok(d), Some(name)) => d.join(name),
+            _ => lexical,
+        }
+    }
+    norm(a) == norm(b)
 }
 
 fn list_or_none(names: &[&str]) -> String {
@@ -636,6 +717,14 @@ fn cache_key(
     h.finalize().to_hex()[..32].to_string()
 }
 
+/// Memory the system can still give [bytes], from /proc/meminfo (Linux); `None` elsewhere.
+pub fn available_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kib.checked_mul(1024)
+}
+
 /// Human-readable byte count.
 pub fn human_bytes(b: u64) -> String {
     const U: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
@@ -692,27 +781,92 @@ pub struct RunResult {
 }
 
 /// Identifies the layout of cached artifacts: bump it whenever the serialized data model
-/// changes (a field or variant added), so entries written by an older grainpipe are
-/// recomputed instead of misread. 2: field component conventions, bond attributes,
-/// collections.
-const CACHE_MAGIC: &[u8; 8] = b"GRPCACH2";
+/// or the entry layout changes, so entries written by an older grainpipe are recomputed
+/// instead of misread. 2: field component conventions, bond attributes, collections.
+/// 3: a BLAKE3 checksum of (key, payload) after the magic.
+const CACHE_MAGIC: &[u8; 8] = b"GRPCACH3";
 
 fn cache_path(dir: &Path, key: &str) -> PathBuf {
     dir.join(format!("{key}.bin"))
 }
 
-fn cache_load(dir: &Path, key: &str) -> Option<Outputs> {
-    let bytes = std::fs::read(cache_path(dir, key)).ok()?;
-    let body = bytes.strip_prefix(CACHE_MAGIC.as_slice())?;
-    let v: Vec<(String, Artifact)> = postcard::from_bytes(body).ok()?;
-    Some(v.into_iter().collect())
+/// What reading a cache entry gave.
+enum CacheRead {
+    /// No entry (the normal miss), or one written by another grainpipe layout.
+    Miss,
+    Hit(Outputs),
+    /// An entry that exists but cannot be trusted; the reason is shown as a warning.
+    Corrupt(String),
+}
+
+/// The checksum covers the key too, so an entry copied onto another step's key is refused
+/// like a flipped bit, before its payload is even decoded.
+fn cache_checksum(key: &str, body: &[u8]) -> blake3::Hash {
+    let mut h = blake3::Hasher::new();
+    h.update(key.as_bytes());
+    h.update(b"\0");
+    h.update(body);
+    h.finalize()
+}
+
+fn cache_load(dir: &Path, key: &str) -> CacheRead {
+    let Ok(bytes) = std::fs::read(cache_path(dir, key)) else {
+        return CacheRead::Miss;
+    };
+    let Some(rest) = bytes.strip_prefix(CACHE_MAGIC.as_slice()) else {
+        return CacheRead::Miss;
+    };
+    if rest.len() < 32 {
+        return CacheRead::Corrupt("truncated entry".into());
+    }
+    let (sum, body) = rest.split_at(32);
+    if cache_checksum(key, body).as_bytes() != sum {
+        return CacheRead::Corrupt(
+            "checksum mismatch (damaged file, or another step's entry)".into(),
+        );
+    }
+    match postcard::from_bytes::<Vec<(String, Artifact)>>(body) {
+        Ok(v) => CacheRead::Hit(v.into_iter().collect()),
+        Err(e) => CacheRead::Corrupt(format!("undecodable payload: {e}")),
+    }
 }
 
 fn cache_store(dir: &Path, key: &str, outputs: &Outputs) -> Result<(), String> {
     let v: Vec<(&String, &Artifact)> = outputs.iter().collect();
+    let body = postcard::to_stdvec(&v).map_err(|e| e.to_string())?;
     let mut bytes = CACHE_MAGIC.to_vec();
-    bytes.extend(postcard::to_stdvec(&v).map_err(|e| e.to_string())?);
+    bytes.extend_from_slice(cache_checksum(key, &body).as_bytes());
+    bytes.extend(body);
     crate::fsutil::atomic_write_bytes(&cache_path(dir, key), &bytes)
+}
+
+/// A cache entry is used only if it holds exactly what the step's preflight announced
+/// (kinds, grids, boxes, counts) and every artifact is internally consistent; otherwise the
+/// step is recomputed. The message says why an entry was refused.
+fn check_cached(step: &PlannedStep, o: &Outputs) -> Result<(), String> {
+    let info = step.stage.info();
+    for (name, a) in o.iter() {
+        let Some(spec) = info.outputs.iter().find(|p| p.name == name.as_str()) else {
+            return Err(format!("holds an output `{name}` the stage does not have"));
+        };
+        if a.kind() != spec.kind {
+            return Err(format!(
+                "output `{name}` is a {}, not a {}",
+                a.kind(),
+                spec.kind
+            ));
+        }
+        a.validate().map_err(|e| format!("output `{name}`: {e}"))?;
+    }
+    for (name, announced) in &step.preflight.outputs {
+        let a = o
+            .get(name)
+            .ok_or_else(|| format!("lacks the announced output `{name}`"))?;
+        announced
+            .check(a)
+            .map_err(|m| format!("output `{name}` {m}"))?;
+    }
+    Ok(())
 }
 
 /// Runs a checked plan: steps in order, cached results reused, exports written as soon as
@@ -759,10 +913,33 @@ pub fn execute(
         }
         let start = Instant::now();
         let reporter = observer.step_started(step);
-        let cached = opts
+        let cached = match opts
             .cache_dir
             .as_ref()
-            .and_then(|d| cache_load(d, &step.cache_key));
+            .map(|d| cache_load(d, &step.cache_key))
+        {
+            Some(CacheRead::Hit(o)) => match check_cached(step, &o) {
+                Ok(()) => Some(o),
+                Err(m) => {
+                    reporter.message(
+                        crate::stage::Level::Warn,
+                        &format!("cache entry {} refused ({m}); recomputing", step.cache_key),
+                    );
+                    None
+                }
+            },
+            Some(CacheRead::Corrupt(m)) => {
+                reporter.message(
+                    crate::stage::Level::Warn,
+                    &format!(
+                        "cache entry {} is corrupt ({m}); recomputing",
+                        step.cache_key
+                    ),
+                );
+                None
+            }
+            Some(CacheRead::Miss) | None => None,
+        };
         let from_cache = cached.is_some();
         let outputs = match cached {
             Some(o) => o,
@@ -772,12 +949,17 @@ pub fn execute(
                     .stage
                     .run(&step.params, &step.prepared, &inputs, &ctx)
                     .map_err(|e| {
+                        // Exit code 2 promises that nothing ran: an input error found at run
+                        // time after other steps ran (or were served) is a run failure.
                         let class_input = matches!(
                             e,
                             StageError::InvalidParam { .. } | StageError::InvalidInput { .. }
-                        );
+                        ) && stats.is_empty();
+                        let cancelled = matches!(e, StageError::Cancelled);
                         let mut pe = stage_error(doc, i, &*step.stage, e);
-                        if !class_input {
+                        if cancelled {
+                            pe.class = crate::pipeline::ErrorClass::Interrupted;
+                        } else if !class_input {
                             pe.class = crate::pipeline::ErrorClass::Run;
                         }
                         pe
@@ -805,7 +987,13 @@ pub fn execute(
         let outputs = Arc::new(outputs);
         results[i] = Some(outputs.clone());
         for e in plan.exports.iter().filter(|e| e.producer == i) {
-            let artifact = outputs.get(&e.port).expect("checked output");
+            let artifact = outputs.get(&e.port).ok_or_else(|| {
+                PipelineError::run(
+                    &doc.file,
+                    Some(e.loc),
+                    format!("step `{}` gave no output `{}` to export", step.id, e.port),
+                )
+            })?;
             let prov = provenance(doc, plan, step, &e.port, &timings);
             e.exporter.write(artifact, &e.path, &prov).map_err(|m| {
                 PipelineError::run(&doc.file, Some(e.loc), format!("export failed: {m}"))

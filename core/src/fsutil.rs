@@ -2,14 +2,19 @@
 
 use std::path::{Path, PathBuf};
 
-/// A temporary path in the same directory as `path` (so the final rename is atomic).
+/// Suffix of every temporary file of an atomic write: recognisable, so that files left by a
+/// killed process can be found and removed ([`clean_stale_temps`]).
+pub const TEMP_SUFFIX: &str = ".grainpipe-tmp";
+
+/// A temporary path in the same directory as `path` (so the final rename is atomic):
+/// `.<name>.<pid>.<nanos>.grainpipe-tmp`.
 pub fn temp_path_for(path: &Path) -> PathBuf {
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     let unique = format!(
-        ".{name}.{}.{}.tmp",
+        ".{name}.{}.{}{TEMP_SUFFIX}",
         std::process::id(),
         std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
@@ -19,21 +24,105 @@ pub fn temp_path_for(path: &Path) -> PathBuf {
     path.with_file_name(unique)
 }
 
+/// When this process first wrote a file; temporary files older than that cannot be ours.
+fn process_epoch() -> std::time::SystemTime {
+    static EPOCH: std::sync::OnceLock<std::time::SystemTime> = std::sync::OnceLock::new();
+    *EPOCH.get_or_init(std::time::SystemTime::now)
+}
+
+/// Whether the process that made a temporary file may still be writing it. On Linux the pid
+/// in the name is looked up in /proc; elsewhere a file is presumed live for an hour.
+fn writer_may_be_alive(name: &str, modified: std::time::SystemTime) -> bool {
+    let pid = name
+        .strip_suffix(TEMP_SUFFIX)
+        .and_then(|s| s.rsplit('.').nth(1))
+        .and_then(|p| p.parse::<u32>().ok());
+    if pid == Some(std::process::id()) {
+        return true;
+    }
+    if Path::new("/proc/self").exists() {
+        return pid.is_some_and(|p| Path::new(&format!("/proc/{p}")).exists());
+    }
+    modified
+        .elapsed()
+        .map(|age| age < std::time::Duration::from_secs(3600))
+        .unwrap_or(true)
+}
+
+/// Removes the temporary files a killed grainpipe left in `dir`: files with
+/// [`TEMP_SUFFIX`] older than this process whose writer is gone. Each directory is
+/// scanned once per process (a cache directory can hold thousands of entries). Returns how
+/// many files were removed.
+pub fn clean_stale_temps(dir: &Path) -> usize {
+    static SCANNED: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+    let epoch = process_epoch();
+    {
+        let mut seen = SCANNED.lock().unwrap_or_else(|e| e.into_inner());
+        if seen.iter().any(|d| d == dir) {
+            return 0;
+        }
+        seen.push(dir.to_path_buf());
+    }
+    let Ok(entries) = std::fs::read_dir(if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    }) else {
+        return 0;
+    };
+    let mut removed = 0;
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        if !name.ends_with(TEMP_SUFFIX) {
+            continue;
+        }
+        let Ok(meta) = e.metadata() else { continue };
+        let Ok(modified) = meta.modified() else {
+            continue;
+        };
+        if meta.is_file() && modified < epoch && !writer_may_be_alive(&name, modified) {
+            removed += usize::from(std::fs::remove_file(e.path()).is_ok());
+        }
+    }
+    removed
+}
+
 /// Runs `write` on a temporary path, then renames it to `path`. On error the temporary file
 /// is removed and `path` is left untouched, so a crash never leaves a half-written file that
-/// looks valid.
+/// looks valid. The temporary file is flushed to disk before the rename (a power loss after
+/// the rename must not leave an empty file under the final name). An existing target that
+/// is not a regular file (a device node, FIFO, socket, directory) is refused: the rename
+/// would replace the node itself.
 pub fn atomic_write<E: std::fmt::Display>(
     path: &Path,
     write: impl FnOnce(&Path) -> Result<(), E>,
 ) -> Result<(), String> {
+    process_epoch();
+    if let Ok(meta) = std::fs::metadata(path) {
+        if !meta.is_file() {
+            return Err(format!(
+                "{} exists and is not a regular file; refusing to replace it",
+                path.display()
+            ));
+        }
+    }
     if let Some(dir) = path.parent() {
         if !dir.as_os_str().is_empty() {
             std::fs::create_dir_all(dir)
                 .map_err(|e| format!("cannot create directory {}: {e}", dir.display()))?;
         }
+        clean_stale_temps(dir);
     }
     let tmp = temp_path_for(path);
-    match write(&tmp) {
+    let synced = |tmp: &Path| -> Result<(), String> {
+        std::fs::File::open(tmp)
+            .and_then(|f| f.sync_all())
+            .map_err(|e| format!("cannot flush {}: {e}", tmp.display()))
+    };
+    match write(&tmp)
+        .map_err(|e| e.to_string())
+        .and_then(|()| synced(&tmp))
+    {
         Ok(()) => std::fs::rename(&tmp, path).map_err(|e| {
             let _ = std::fs::remove_file(&tmp);
             format!("cannot move {} to {}: {e}", tmp.display(), path.display())
@@ -97,6 +186,54 @@ mod tests {
         );
         atomic_write_bytes(&target, b"ok").unwrap();
         assert_eq!(std::fs::read(&target).unwrap(), b"ok");
+    }
+
+    #[test]
+    fn stale_temp_files_of_dead_writers_are_removed_live_ones_kept() {
+        let dir = tempfile::tempdir().unwrap();
+        process_epoch();
+        // pid 0 never names a live writer in /proc; our own pid always does
+        let dead = dir.path().join(format!(".a.vti.0.1{TEMP_SUFFIX}"));
+        let mine = dir
+            .path()
+            .join(format!(".b.vti.{}.1{TEMP_SUFFIX}", std::process::id()));
+        let other = dir.path().join(".c.vti.0.1.tmp");
+        for p in [&dead, &mine, &other] {
+            std::fs::write(p, b"x").unwrap();
+            let old = std::time::SystemTime::now() - std::time::Duration::from_secs(7200);
+            std::fs::File::options()
+                .write(true)
+                .open(p)
+                .unwrap()
+                .set_modified(old)
+                .unwrap();
+        }
+        atomic_write_bytes(&dir.path().join("new.bin"), b"ok").unwrap();
+        assert!(!dead.exists(), "stale temp file kept");
+        assert!(mine.exists(), "a live writer's temp file removed");
+        assert!(other.exists(), "a file that is not ours removed");
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn non_regular_targets_are_never_replaced() {
+        let dir = tempfile::tempdir().unwrap();
+        let fifo = dir.path().join("pipe");
+        let ok = std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .map(|s| s.success())
+            .unwrap_or(false);
+        let sub = dir.path().join("sub");
+        std::fs::create_dir(&sub).unwrap();
+        let e = atomic_write_bytes(&sub, b"x").unwrap_err();
+        assert!(e.contains("not a regular file"), "{e}");
+        if ok {
+            let e = atomic_write_bytes(&fifo, b"x").unwrap_err();
+            assert!(e.contains("not a regular file"), "{e}");
+            use std::os::unix::fs::FileTypeExt;
+            assert!(std::fs::metadata(&fifo).unwrap().file_type().is_fifo());
+        }
     }
 
     #[test]

@@ -31,8 +31,42 @@ impl Grid {
         }
     }
 
+    /// Number of voxels. Saturates at `usize::MAX` instead of wrapping, so dims read from a
+    /// file or a plugin that overflow give an impossible memory estimate (refused) and a
+    /// length that no array matches, never a small wrapped count that passes size checks.
     pub fn voxel_count(&self) -> usize {
-        self.dims.iter().product()
+        self.checked_voxel_count().unwrap_or(usize::MAX)
+    }
+    /// Number of voxels, `None` when the product of the dims overflows.
+    pub fn checked_voxel_count(&self) -> Option<usize> {
+        checked_product(&self.dims)
+    }
+    /// Checks a grid that came from outside the program (a file header, a plugin, a cache
+    /// entry): positive dims whose product, times `bytes_per_voxel`, is addressable, and
+    /// finite positive spacing and finite origin.
+    pub fn validate(&self, bytes_per_voxel: usize) -> Result<(), String> {
+        if self.dims.contains(&0) {
+            return Err(format!("grid dims {:?} contain a zero", self.dims));
+        }
+        match checked_product(&[self.voxel_count(), bytes_per_voxel.max(1)]) {
+            Some(n) if n <= isize::MAX as usize && self.checked_voxel_count().is_some() => {}
+            _ => {
+                return Err(format!(
+                    "grid dims {:?} give more voxels than this machine can address",
+                    self.dims
+                ))
+            }
+        }
+        if self.spacing.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(format!(
+                "grid spacing {:?} is not three positive lengths",
+                self.spacing
+            ));
+        }
+        if self.origin.iter().any(|o| !o.is_finite()) {
+            return Err(format!("grid origin {:?} is not finite", self.origin));
+        }
+        Ok(())
     }
     pub fn index(&self, x: usize, y: usize, z: usize) -> usize {
         x + self.dims[0] * (y + self.dims[1] * z)
@@ -48,6 +82,13 @@ impl Grid {
     pub fn voxel_volume(&self) -> f64 {
         self.spacing.iter().product()
     }
+}
+
+/// The product of sizes read from a file, a plugin or a cache entry, `None` when it
+/// overflows `usize`. Every product of untrusted dims goes through here (a wrapped product
+/// passes size checks and then indexes out of bounds).
+pub fn checked_product(factors: &[usize]) -> Option<usize> {
+    factors.iter().try_fold(1usize, |a, &f| a.checked_mul(f))
 }
 
 /// A named phase of a [`PhaseImage`]. Label 0 is pore by convention.
@@ -699,6 +740,84 @@ impl fmt::Display for ArtifactKind {
 }
 
 impl Artifact {
+    /// Checks the artifact's internal consistency: array lengths agree with the grid and
+    /// component count, bodies refer to clumps that exist, table columns and attributes have
+    /// one value per row or body, series and collections recursively. Artifacts that come from
+    /// outside a stage's own code (cache entries, plugins) are checked with this before use,
+    /// so a malformed one is an error instead of an index panic further down.
+    pub fn validate(&self) -> Result<(), String> {
+        match self {
+            Artifact::PhaseImage(x) => {
+                x.grid.validate(1)?;
+                if x.labels.len() != x.grid.voxel_count() {
+                    return Err(format!(
+                        "phase image has {} labels for a {:?} grid",
+                        x.labels.len(),
+                        x.grid.dims
+                    ));
+                }
+            }
+            Artifact::Field(x) => {
+                x.grid.validate(8)?;
+                let want = checked_product(&[x.grid.voxel_count(), x.components]);
+                if x.components == 0 || want != Some(x.data.len()) {
+                    return Err(format!(
+                        "field `{}` has {} values for a {:?} grid of {} components",
+                        x.name,
+                        x.data.len(),
+                        x.grid.dims,
+                        x.components
+                    ));
+                }
+            }
+            Artifact::ClumpLibrary(_) => {}
+            Artifact::Tensor(t) => {
+                if checked_product(&t.shape) != Some(t.values.len()) {
+                    return Err(format!(
+                        "tensor `{}` has {} values for shape {:?}",
+                        t.name,
+                        t.values.len(),
+                        t.shape
+                    ));
+                }
+            }
+            Artifact::Packing(p) => {
+                let clumps = p.library.as_ref().map(|l| l.clumps.len()).unwrap_or(0);
+                for (k, b) in p.bodies.iter().enumerate() {
+                    if let BodyShape::Clump { index } = b.shape {
+                        if index >= clumps {
+                            return Err(format!(
+                                "body {k} refers to clump {index} of a library of {clumps}"
+                            ));
+                        }
+                    }
+                }
+                for (name, a) in &p.attributes {
+                    if a.values.len() != p.bodies.len() {
+                        return Err(format!(
+                            "body attribute `{name}` has {} values for {} bodies",
+                            a.values.len(),
+                            p.bodies.len()
+                        ));
+                    }
+                }
+            }
+            Artifact::ContactGraph(g) => g.validate()?,
+            Artifact::Table(t) => t.validate()?,
+            Artifact::Series(s) => {
+                for (_, f) in &s.frames {
+                    f.validate()?;
+                }
+            }
+            Artifact::Collection(c) => {
+                for (name, item) in &c.items {
+                    item.validate().map_err(|e| format!("item `{name}`: {e}"))?;
+                }
+            }
+        }
+        Ok(())
+    }
+
     pub fn kind(&self) -> ArtifactKind {
         match self {
             Artifact::PhaseImage(_) => ArtifactKind::PhaseImage,

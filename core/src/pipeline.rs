@@ -39,6 +39,8 @@ pub enum ErrorClass {
     Input,
     /// A stage failed while running, or an output could not be written: exit 1.
     Run,
+    /// The user interrupted the run (Ctrl-C): exit 130, as a shell reports SIGINT.
+    Interrupted,
 }
 
 /// An error about a pipeline, with the place in the file it concerns.
@@ -76,6 +78,7 @@ impl PipelineError {
         match self.class {
             ErrorClass::Input => 2,
             ErrorClass::Run => 1,
+            ErrorClass::Interrupted => 130,
         }
     }
 }

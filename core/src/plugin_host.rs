@@ -139,12 +139,137 @@ fn kind_from_name(name: &str) -> Result<ArtifactKind, String> {
     })
 }
 
+/// Reads a little- or big-endian unsigned integer of `n` bytes at `at`.
+fn uint(b: &[u8], at: usize, n: usize, little: bool) -> Option<u64> {
+    let s = b.get(at..at.checked_add(n)?)?;
+    let mut v = 0u64;
+    for k in 0..n {
+        let byte = if little { s[n - 1 - k] } else { s[k] };
+        v = (v << 8) | u64::from(byte);
+    }
+    Some(v)
+}
+
+/// Checks, before `dlopen`, that a file can be a shared library: not empty and, for ELF
+/// files, that the program headers and every loadable segment lie inside the file. The
+/// dynamic loader maps segments without checking the file size, so a truncated `.so` makes
+/// the first access past its end a SIGBUS that kills every command; this turns it into an
+/// error naming the file. Non-ELF formats (Mach-O, PE) are left to the loader.
+pub fn check_library_file(path: &Path) -> Result<(), String> {
+    let shown = path.display();
+    let meta = std::fs::metadata(path).map_err(|e| format!("plugin {shown}: {e}"))?;
+    if !meta.is_file() {
+        return Err(format!("plugin {shown} is not a regular file"));
+    }
+    let size = meta.len();
+    if size == 0 {
+        return Err(format!(
+            "plugin {shown} is empty (0 bytes): not a shared library (an interrupted copy?)"
+        ));
+    }
+    use std::io::Read;
+    let mut head = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(64).read_to_end(&mut head))
+        .map_err(|e| format!("plugin {shown}: {e}"))?;
+    if !head.starts_with(b"\x7fELF") {
+        if cfg!(target_os = "linux") {
+            return Err(format!(
+                "plugin {shown} is not an ELF shared library (it does not start with the ELF magic)"
+            ));
+        }
+        return Ok(());
+    }
+    let truncated = |what: &str| {
+        format!(
+            "plugin {shown} is truncated or corrupt ({what} lies past its {size} bytes); \
+             rebuild or copy it again"
+        )
+    };
+    let wide = match head.get(4) {
+        Some(2) => true,
+        Some(1) => false,
+        _ => return Err(truncated("ELF class")),
+    };
+    let little = match head.get(5) {
+        Some(1) => true,
+        Some(2) => false,
+        _ => return Err(truncated("ELF byte order")),
+    };
+    let (phoff, phentsize, phnum) = if wide {
+        (
+            uint(&head, 0x20, 8, little),
+            uint(&head, 0x36, 2, little),
+            uint(&head, 0x38, 2, little),
+        )
+    } else {
+        (
+            uint(&head, 0x1c, 4, little),
+            uint(&head, 0x2a, 2, little),
+            uint(&head, 0x2c, 2, little),
+        )
+    };
+    let (Some(phoff), Some(phentsize), Some(phnum)) = (phoff, phentsize, phnum) else {
+        return Err(truncated("the ELF header"));
+    };
+    let table_end = phentsize
+        .checked_mul(phnum)
+        .and_then(|n| n.checked_add(phoff))
+        .filter(|&e| e <= size)
+        .ok_or_else(|| truncated("the program header table"))?;
+    let mut table = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(table_end).read_to_end(&mut table))
+        .map_err(|e| format!("plugin {shown}: {e}"))?;
+    for k in 0..phnum {
+        let at = (phoff + k * phentsize) as usize;
+        // p_type, then p_offset and p_filesz
+        let (ty, off, filesz) = if wide {
+            (
+                uint(&table, at, 4, little),
+                uint(&table, at + 8, 8, little),
+                uint(&table, at + 32, 8, little),
+            )
+        } else {
+            (
+                uint(&table, at, 4, little),
+                uint(&table, at + 4, 4, little),
+                uint(&table, at + 16, 4, little),
+            )
+        };
+        let (Some(ty), Some(off), Some(filesz)) = (ty, off, filesz) else {
+            return Err(truncated("a program header"));
+        };
+        const PT_LOAD: u64 = 1;
+        if ty == PT_LOAD && off.checked_add(filesz).is_none_or(|e| e > size) {
+            return Err(truncated(&format!("loadable segment {k}")));
+        }
+    }
+    Ok(())
+}
+
+/// The error and every cause below it (libloading puts dlopen's reason in the source).
+fn error_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cur = e.source();
+    while let Some(c) = cur {
+        let more = c.to_string();
+        if !text.contains(&more) {
+            text.push_str(": ");
+            text.push_str(&more);
+        }
+        cur = c.source();
+    }
+    text
+}
+
 /// Loads one plugin library and registers its stages; returns their ids.
 pub fn load_plugin(path: &Path, registry: &mut Registry) -> Result<Vec<String>, String> {
     let shown = path.display();
+    check_library_file(path)?;
     // SAFETY: loading a library runs its initializers; that is the contract of a plugin.
     let lib = unsafe { libloading::Library::new(path) }
-        .map_err(|e| format!("cannot load plugin {shown}: {e}"))?;
+        .map_err(|e| format!("cannot load plugin {shown}: {}", error_chain(&e)))?;
     // SAFETY: the symbol's type is fixed by the ABI.
     let version =
         unsafe { lib.get::<extern "C" fn() -> u32>(b"grainpipe_abi_version") }.map_err(|_| {
@@ -187,6 +312,14 @@ pub fn load_plugin(path: &Path, registry: &mut Registry) -> Result<Vec<String>, 
     // SAFETY: the plugin guarantees the metadata string lives as long as the library.
     let meta_text =
         unsafe { (vt.metadata_json)().to_str() }.map_err(|e| format!("{shown}: metadata: {e}"))?;
+    if let Ok(Value::Object(m)) = serde_json::from_str::<Value>(meta_text) {
+        if let Some(p) = m.get("panic") {
+            return Err(format!(
+                "{shown}: the plugin panicked while giving its metadata: {}",
+                p.as_str().unwrap_or("unknown panic")
+            ));
+        }
+    }
     let meta: MetaDoc = serde_json::from_str(meta_text)
         .map_err(|e| format!("{shown}: metadata JSON is invalid: {e}"))?;
     std::mem::forget(lib);
@@ -433,7 +566,10 @@ impl Stage for ForeignStage {
             let pending = ctx.outputs.shift_remove(spec.name).ok_or_else(|| {
                 StageError::failed(format!("plugin did not give output `{}`", spec.name))
             })?;
+            // Everything a plugin states is checked like a file's header: the artifact's
+            // sizes must agree with its metadata before any stage or exporter indexes it.
             let a = unmarshal(spec.kind, &pending)
+                .and_then(|a| a.validate().map(|()| a))
                 .map_err(|e| StageError::failed(format!("plugin output `{}`: {e}", spec.name)))?;
             outputs.insert(spec.name.to_string(), a);
         }
@@ -454,13 +590,27 @@ enum Buf {
 }
 
 impl Buf {
+    /// A zeroed buffer of `n` elements, or `None` (a null pointer for the plugin, which
+    /// then fails with a message) when the type is unknown or the bytes exceed the memory
+    /// the system still has: `vec![0; n]` would abort the host on an allocation failure, and
+    /// a plugin asking for 2^37 f64 must fail, not kill `pipe`.
     fn zeroed(dt: u32, n: usize) -> Option<Buf> {
+        fn vec<T: Clone + Default>(n: usize) -> Option<Vec<T>> {
+            let bytes = n.checked_mul(std::mem::size_of::<T>())? as u64;
+            if bytes > crate::engine::available_memory().unwrap_or(u64::MAX) {
+                return None;
+            }
+            let mut v = Vec::new();
+            v.try_reserve_exact(n).ok()?;
+            v.resize(n, T::default());
+            Some(v)
+        }
         Some(match dt {
-            dtype::U8 => Buf::U8(vec![0; n]),
-            dtype::U32 => Buf::U32(vec![0; n]),
-            dtype::I64 => Buf::I64(vec![0; n]),
-            dtype::F32 => Buf::F32(vec![0.0; n]),
-            dtype::F64 => Buf::F64(vec![0.0; n]),
+            dtype::U8 => Buf::U8(vec(n)?),
+            dtype::U32 => Buf::U32(vec(n)?),
+            dtype::I64 => Buf::I64(vec(n)?),
+            dtype::F32 => Buf::F32(vec(n)?),
+            dtype::F64 => Buf::F64(vec(n)?),
             _ => return None,
         })
     }
@@ -692,8 +842,8 @@ fn unmarshal(kind: ArtifactKind, p: &PendingOutput) -> Result<Artifact, String> 
     };
     let de = |k: &str, e: serde_json::Error| format!("metadata `{k}`: {e}");
     let expect_len = |a: &NamedArray, n: usize| {
-        let len: usize = a.shape.iter().product();
-        if len == n {
+        let len = checked_product(&a.shape).unwrap_or(usize::MAX);
+        if len == n && n != usize::MAX {
             Ok(())
         } else {
             Err(format!(
@@ -705,6 +855,8 @@ fn unmarshal(kind: ArtifactKind, p: &PendingOutput) -> Result<Artifact, String> 
     Ok(match kind {
         ArtifactKind::PhaseImage => {
             let grid: Grid = serde_json::from_value(get("grid")?).map_err(|e| de("grid", e))?;
+            grid.validate(1)
+                .map_err(|e| format!("metadata `grid`: {e}"))?;
             let phases: Vec<Phase> =
                 serde_json::from_value(get("phases")?).map_err(|e| de("phases", e))?;
             let a = p.take("labels")?;
@@ -723,8 +875,13 @@ fn unmarshal(kind: ArtifactKind, p: &PendingOutput) -> Result<Artifact, String> 
             let components = get("components")?
                 .as_u64()
                 .ok_or("`components` must be an integer")? as usize;
+            grid.validate(8)
+                .map_err(|e| format!("metadata `grid`: {e}"))?;
             let a = p.take("data")?;
-            expect_len(a, grid.voxel_count() * components)?;
+            expect_len(
+                a,
+                checked_product(&[grid.voxel_count(), components]).unwrap_or(usize::MAX),
+            )?;
             let data = match &a.data {
                 Buf::F32(v) => FieldData::F32(v.clone()),
                 Buf::F64(v) => FieldData::F64(v.clone()),

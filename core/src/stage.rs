@@ -227,6 +227,16 @@ impl<'a> RunContext<'a> {
         }
     }
 
+    /// `Err(Cancelled)` when the user interrupted the run, without reporting progress: for
+    /// inner loops that may run long between progress reports (a packing near jamming).
+    pub fn check_cancelled(&self) -> Result<(), StageError> {
+        if self.reporter.cancelled() {
+            Err(StageError::Cancelled)
+        } else {
+            Ok(())
+        }
+    }
+
     pub fn info(&self, text: &str) {
         self.reporter.message(Level::Info, text);
     }

@@ -207,7 +207,18 @@ fn preflight_common(
             ),
         ));
     }
-    let n = h.dims.iter().product::<usize>() * h.components;
+    let [x, y, z] = h.dims;
+    let n = grainpipe_core::checked_product(&[x, y, z, h.components])
+        .filter(|n| n.checked_mul(h.elem_bytes + 8).is_some())
+        .ok_or_else(|| {
+            StageError::param(
+                "path",
+                format!(
+                    "the array's dims {:?} x {} components overflow; the header is corrupt",
+                    h.dims, h.components
+                ),
+            )
+        })?;
     if n == 0 {
         return Err(StageError::param(
             "path",

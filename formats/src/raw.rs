@@ -47,15 +47,27 @@ pub struct RawLayout {
 }
 
 impl RawLayout {
-    pub fn expected_size(&self) -> u64 {
-        self.header_bytes + (self.dims.iter().product::<usize>() * self.dtype.size()) as u64
+    /// Bytes the layout needs, `None` when the dims overflow (dims come from the user and
+    /// a wrapped product would match a small file).
+    pub fn expected_size(&self) -> Option<u64> {
+        let [x, y, z] = self.dims;
+        grainpipe_core::checked_product(&[x, y, z, self.dtype.size()])
+            .and_then(|n| u64::try_from(n).ok())
+            .and_then(|n| n.checked_add(self.header_bytes))
     }
 }
 
 /// Checks that the file exists and has exactly the size the layout implies.
 pub fn probe_raw(path: &Path, l: &RawLayout) -> Result<Probe, String> {
     let meta = std::fs::metadata(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let want = l.expected_size();
+    let want = l.expected_size().ok_or_else(|| {
+        format!(
+            "{}: dims {:?} of {:?} describe more bytes than any file can hold",
+            path.display(),
+            l.dims,
+            l.dtype
+        )
+    })?;
     if meta.len() != want {
         return Err(format!(
             "{}: is {} bytes, but dims {:?} of {:?}{} need {want} bytes ({})",

@@ -46,17 +46,36 @@ fn csv_err(e: csv::Error) -> String {
     e.to_string()
 }
 
+/// The provenance as `#` comment lines (`# key: value`; values with line breaks or other
+/// control characters JSON-quoted, so every entry stays on one line). CSV readers skip them
+/// with their comment option (`comment='#'` in pandas and numpy).
+fn provenance_comment(prov: &Provenance) -> String {
+    let mut out = String::new();
+    for (k, v) in &prov.entries {
+        let v = if v.chars().any(char::is_control) {
+            serde_json::to_string(v).unwrap_or_default()
+        } else {
+            v.clone()
+        };
+        out.push_str(&format!("# {k}: {v}\n"));
+    }
+    out
+}
+
 fn write_csv_records(
     path: &Path,
     comment: Option<String>,
+    prov: &Provenance,
     rows: impl Iterator<Item = Vec<String>>,
 ) -> Result<(), String> {
     atomic_write(path, |tmp| -> Result<(), String> {
         let mut file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
+        use std::io::Write;
         if let Some(c) = comment {
-            use std::io::Write;
             writeln!(file, "# {}", c.replace('\n', " ")).map_err(|e| e.to_string())?;
         }
+        file.write_all(provenance_comment(prov).as_bytes())
+            .map_err(|e| e.to_string())?;
         let mut w = csv::WriterBuilder::new().flexible(true).from_writer(file);
         for r in rows {
             w.write_record(&r).map_err(csv_err)?;
@@ -65,7 +84,7 @@ fn write_csv_records(
     })
 }
 
-pub fn write_csv(a: &Artifact, path: &Path, _prov: &Provenance) -> Result<(), String> {
+pub fn write_csv(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
     match a {
         Artifact::Table(t) => {
             t.validate()?;
@@ -80,7 +99,7 @@ pub fn write_csv(a: &Artifact, path: &Path, _prov: &Provenance) -> Result<(), St
                     })
                     .collect()
             });
-            write_csv_records(path, None, std::iter::once(head).chain(rows))
+            write_csv_records(path, None, prov, std::iter::once(head).chain(rows))
         }
         Artifact::Tensor(t) => {
             check_tensor(t)?;
@@ -100,7 +119,7 @@ pub fn write_csv(a: &Artifact, path: &Path, _prov: &Provenance) -> Result<(), St
                 .values
                 .chunks(cols.max(1))
                 .map(|r| r.iter().map(|&x| fmt_f64(x)).collect());
-            write_csv_records(path, Some(comment), rows)
+            write_csv_records(path, Some(comment), prov, rows)
         }
         Artifact::ContactGraph(g) => {
             g.validate()?;
@@ -151,7 +170,7 @@ pub fn write_csv(a: &Artifact, path: &Path, _prov: &Provenance) -> Result<(), St
                         .filter(|(_, b)| !contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))))
                         .map(|(k, b)| row(b[0], b[1], None, Some(k))),
                 );
-            write_csv_records(path, None, std::iter::once(head).chain(rows))
+            write_csv_records(path, None, prov, std::iter::once(head).chain(rows))
         }
         other => Err(format!(
             "csv takes a Table, a Tensor or a ContactGraph, not a {}",

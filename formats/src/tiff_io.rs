@@ -128,7 +128,8 @@ pub fn read_tiff(path: &Path) -> Result<Volume, String> {
     })?;
     macro_rules! concat {
         ($variant:ident, $conv:expr) => {{
-            let mut out = Vec::with_capacity(probe.dims.iter().product());
+            // no capacity from the header's dims: they are checked against the data below
+            let mut out = Vec::new();
             for s in slices {
                 match s {
                     DecodingResult::$variant(v) => out.extend(v.into_iter().map($conv)),
@@ -154,7 +155,7 @@ pub fn read_tiff(path: &Path) -> Result<Volume, String> {
             ))
         }
     };
-    if data.len() != probe.dims.iter().product::<usize>() {
+    if Some(data.len()) != grainpipe_core::checked_product(&probe.dims) {
         return Err(format!(
             "{}: decoded {} samples, expected {:?}",
             path.display(),

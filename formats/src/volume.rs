@@ -217,7 +217,8 @@ impl<'a> VolumeRef<'a> {
     /// Checks that the array length matches the grid (a malformed artifact must not produce a
     /// file that opens with garbage).
     pub fn validate(&self) -> Result<(), String> {
-        let n = self.grid().voxel_count() * self.components();
+        let n = grainpipe_core::checked_product(&[self.grid().voxel_count(), self.components()])
+            .unwrap_or(usize::MAX);
         let len = match self {
             VolumeRef::Phase(p) => p.labels.len(),
             VolumeRef::Field(f) => f.data.len(),

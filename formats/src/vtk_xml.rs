@@ -453,9 +453,15 @@ pub fn write_vtp(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
     write_text(path, &poly.xml())
 }
 
-/// Writes every frame (of a Series) or item (of a Collection) beside the `.pvd`
-/// (`<stem>_0000.vtp|vti`), then the collection file: frames as time steps, items as parts of
-/// one time step (ParaView shows them as the blocks of a multiblock data set).
+/// Writes every frame (of a Series) or item (of a Collection) into a fresh folder beside the
+/// `.pvd` (`<stem>_frames_<tag>/<stem>_0000.vtp|vti`), then the collection file, then removes
+/// the frame folders of earlier writes: frames as time steps, items as parts of one time
+/// step (ParaView shows them as the blocks of a multiblock data set).
+///
+/// Why a fresh folder: the series is replaced as a set. Until the `.pvd` is renamed into
+/// place it still names the complete old folder; after, the complete new one. A kill at any
+/// moment never leaves a `.pvd` that mixes frames of two runs (frames rewritten in place
+/// did), and the folders a killed write left are removed by the next write.
 pub fn write_pvd(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
     // (time step, part, item name, artifact)
     let entries: Vec<(f64, usize, Option<&str>, &Artifact)> = match a {
@@ -487,11 +493,54 @@ pub fn write_pvd(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
         .to_string_lossy()
         .into_owned();
     let dir = path.parent().unwrap_or(Path::new(""));
+    let prefix = format!("{stem}_frames_");
+    let tag = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0);
+    let folder = format!("{prefix}{tag:x}{:x}", std::process::id());
+    let frames_dir = dir.join(&folder);
+    std::fs::create_dir_all(&frames_dir)
+        .map_err(|e| format!("cannot create {}: {e}", frames_dir.display()))?;
+    let written = write_pvd_set(&entries, ext, &stem, &folder, dir, prov, path);
+    if written.is_err() {
+        let _ = std::fs::remove_dir_all(&frames_dir);
+        return written;
+    }
+    // The new set is in place: earlier sets (and those a killed write left) go.
+    if let Ok(list) = std::fs::read_dir(if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    }) {
+        for e in list.flatten() {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let ours = name.strip_prefix(&prefix).is_some_and(|rest| {
+                !rest.is_empty() && rest.chars().all(|c| c.is_ascii_hexdigit())
+            });
+            if ours && name != folder && e.path().is_dir() {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The frames of a `.pvd` into `dir/folder`, then the `.pvd` itself (last, atomically).
+fn write_pvd_set(
+    entries: &[(f64, usize, Option<&str>, &Artifact)],
+    ext: &str,
+    stem: &str,
+    folder: &str,
+    dir: &Path,
+    prov: &Provenance,
+    path: &Path,
+) -> Result<(), String> {
     let mut coll = String::from(
         "<?xml version=\"1.0\"?>\n<VTKFile type=\"Collection\" version=\"1.0\" byte_order=\"LittleEndian\">\n<Collection>\n",
     );
     for (k, (t, part, item_name, item)) in entries.iter().enumerate() {
-        let name = format!("{stem}_{k:04}.{ext}");
+        let name = format!("{folder}/{stem}_{k:04}.{ext}");
         let mut p = prov.clone();
         match item_name {
             Some(n) => p.entries.insert("item".into(), n.to_string()),
@@ -708,9 +757,11 @@ impl Encoding {
         }
     }
 
+    /// A size read from the file's header. A UInt64 beyond `usize` saturates, so that every
+    /// later bound check refuses it instead of seeing a truncated small number.
     fn header_value(&self, b: &[u8]) -> usize {
         if self.header_u64 {
-            u64::from_bytes(b, self.little) as usize
+            usize::try_from(u64::from_bytes(b, self.little)).unwrap_or(usize::MAX)
         } else {
             u32::from_bytes(b, self.little) as usize
         }
@@ -744,8 +795,9 @@ impl Encoding {
             // Header and data are one base64 stream.
             let all = dec(text)?;
             let n = self.header_value(all.get(..hs).ok_or("truncated array")?);
-            return all
-                .get(hs..hs + n)
+            return hs
+                .checked_add(n)
+                .and_then(|end| all.get(hs..end))
                 .map(|d| d.to_vec())
                 .ok_or_else(|| format!("array says {n} bytes but holds {}", all.len() - hs));
         }
@@ -753,38 +805,84 @@ impl Encoding {
         // entry (number of blocks).
         let b64len = |bytes: usize| bytes.div_ceil(3) * 4;
         let first = dec(text.get(..b64len(3 * hs)).ok_or("truncated header")?)?;
-        let nblocks = self.header_value(&first[..hs]);
-        let hlen = b64len((3 + nblocks) * hs);
+        let nblocks = self.header_value(first.get(..hs).ok_or("truncated header")?);
+        // The header cannot be longer than the text that holds it.
+        let hlen = nblocks
+            .checked_add(3)
+            .and_then(|n| n.checked_mul(hs))
+            .filter(|&n| n <= text.len())
+            .map(b64len)
+            .ok_or_else(|| format!("header claims {nblocks} blocks, more than the array holds"))?;
         let header = dec(text.get(..hlen).ok_or("truncated header")?)?;
         let body = dec(&text[hlen..])?;
         self.inflate(&header, &body)
     }
 
+    /// Inflates zlib blocks. Every size comes from the file, so none is trusted: the header
+    /// must hold `3 + nblocks` entries, the compressed sizes must fit in `body`, the total
+    /// must not overflow, and no block may inflate past what its header entry says. The
+    /// allocation is bounded by what the body can possibly inflate to (zlib's ratio is at
+    /// most 1032:1), so a header claiming 2^40 bytes in a small file allocates nothing large.
     fn inflate(&self, header: &[u8], body: &[u8]) -> Result<Vec<u8>, String> {
+        const MAX_ZLIB_RATIO: usize = 1032;
         let hs = self.hsize();
         let h: Vec<usize> = header
             .chunks_exact(hs)
             .map(|c| self.header_value(c))
             .collect();
-        let (nblocks, bsize, last) = (h[0], h[1], h[2]);
-        let mut out = Vec::with_capacity(nblocks * bsize);
-        let mut pos = 0;
-        for k in 0..nblocks {
-            let c = h[3 + k];
-            let chunk = body.get(pos..pos + c).ok_or("compressed data truncated")?;
-            pos += c;
+        let [nblocks, bsize, last] = match h.get(..3) {
+            Some(&[a, b, c]) => [a, b, c],
+            _ => return Err("truncated compression header".into()),
+        };
+        let sizes = nblocks
+            .checked_add(3)
+            .and_then(|n| h.get(3..n))
+            .ok_or_else(|| format!("compression header lists fewer than its {nblocks} blocks"))?;
+        if last > bsize {
+            return Err(format!(
+                "compression header: last block of {last} bytes exceeds the block size {bsize}"
+            ));
+        }
+        let total = match nblocks {
+            0 => Some(0),
+            n => (n - 1)
+                .checked_mul(bsize)
+                .and_then(|t| t.checked_add(if last != 0 { last } else { bsize })),
+        }
+        .ok_or("compression header: uncompressed size overflows")?;
+        let possible = body.len().saturating_mul(MAX_ZLIB_RATIO).saturating_add(64);
+        if total > possible {
+            return Err(format!(
+                "compression header claims {total} bytes, but {} compressed bytes cannot \
+                 inflate to more than {possible}",
+                body.len()
+            ));
+        }
+        let mut out = Vec::with_capacity(total);
+        let mut pos = 0usize;
+        for (k, &c) in sizes.iter().enumerate() {
+            let end = pos.checked_add(c).ok_or("compressed sizes overflow")?;
+            let chunk = body.get(pos..end).ok_or("compressed data truncated")?;
+            pos = end;
             let before = out.len();
-            flate2::read::ZlibDecoder::new(chunk)
-                .read_to_end(&mut out)
-                .map_err(|e| format!("zlib: {e}"))?;
             let expect = if k + 1 == nblocks && last != 0 {
                 last
             } else {
                 bsize
             };
+            // One byte more than expected is enough to tell a lying header.
+            flate2::read::ZlibDecoder::new(chunk)
+                .take(expect as u64 + 1)
+                .read_to_end(&mut out)
+                .map_err(|e| format!("zlib: {e}"))?;
             if out.len() - before != expect {
                 return Err(format!(
-                    "block {k} inflates to {} bytes, header says {expect}",
+                    "block {k} inflates to {}{} bytes, header says {expect}",
+                    if out.len() - before > expect {
+                        "more than "
+                    } else {
+                        ""
+                    },
                     out.len() - before
                 ));
             }
@@ -874,16 +972,25 @@ impl VtkFile {
             return enc.binary_inline(tail);
         }
         let a = &self.appended;
-        let at = |i: usize, n: usize| a.get(i..i + n).ok_or("appended data truncated");
+        let at = |i: usize, n: usize| {
+            i.checked_add(n)
+                .and_then(|end| a.get(i..end))
+                .ok_or("appended data truncated (or a size in its header is too large)")
+        };
         if !enc.compressed {
             let n = enc.header_value(at(off, hs)?);
             return Ok(at(off + hs, n)?.to_vec());
         }
         let nblocks = enc.header_value(at(off, hs)?);
-        let header = at(off, (3 + nblocks) * hs)?;
-        let csum: usize = (0..nblocks)
-            .map(|k| enc.header_value(&header[(3 + k) * hs..(4 + k) * hs]))
-            .sum();
+        let hlen = nblocks
+            .checked_add(3)
+            .and_then(|n| n.checked_mul(hs))
+            .ok_or("compression header: block count overflows")?;
+        let header = at(off, hlen)?;
+        let csum = header[3 * hs..]
+            .chunks_exact(hs)
+            .try_fold(0usize, |acc, c| acc.checked_add(enc.header_value(c)))
+            .ok_or("compressed sizes overflow")?;
         let body = at(off + header.len(), csum)?;
         enc.inflate(header, body)
     }
@@ -1029,13 +1136,14 @@ impl ImageGrid {
     /// data are voxel centres (dims = points, origin moved back by half a voxel).
     pub fn voxels(&self, is_cell: bool) -> ([usize; 3], Option<[f64; 3]>, Option<[f64; 3]>) {
         let (ext, spacing, mut origin) = (self.ext, self.spacing, self.origin);
-        let span = |a: usize| (ext[2 * a + 1] - ext[2 * a]).max(0) as usize;
+        // saturating: an absurd extent becomes a huge count that size checks refuse
+        let span = |a: usize| ext[2 * a + 1].saturating_sub(ext[2 * a]).max(0) as usize;
         let mut dims = [span(0), span(1), span(2)];
         if is_cell {
             // a 2-D image has a zero-thickness extent along z and one cell layer
             dims = dims.map(|d| d.max(1));
         } else {
-            dims = dims.map(|d| d + 1);
+            dims = dims.map(|d| d.saturating_add(1));
             if let (Some(o), Some(s)) = (origin.as_mut(), spacing) {
                 for a in 0..3 {
                     o[a] -= 0.5 * s[a];
@@ -1146,7 +1254,12 @@ pub fn read_vti(path: &Path, array: Option<&str>) -> Result<Volume, String> {
     let (dims, spacing, origin) = grid.voxels(is_cell);
     let components = array_components(node);
     let data = f.array_values(node).map_err(at)?;
-    let expect = dims.iter().product::<usize>() * components;
+    let expect = grainpipe_core::checked_product(&[dims[0], dims[1], dims[2], components])
+        .ok_or_else(|| {
+            at(format!(
+                "extent {dims:?} x {components} components overflows"
+            ))
+        })?;
     if data.len() != expect {
         return Err(at(format!(
             "array `{}` holds {} values; extent {dims:?} x {components} components needs {expect}",
@@ -1359,8 +1472,12 @@ mod tests {
         assert_eq!(sets.len(), 3);
         for (k, (t, set)) in [0.0, 0.25, 1.5].iter().zip(sets).enumerate() {
             assert_eq!(set.attr("timestep").unwrap().parse::<f64>().unwrap(), *t);
-            let file = dir.path().join(set.attr("file").unwrap());
-            assert_eq!(file, dir.path().join(format!("run_{k:04}.vti")));
+            let rel = set.attr("file").unwrap();
+            assert!(
+                rel.starts_with("run_frames_") && rel.ends_with(&format!("/run_{k:04}.vti")),
+                "{rel}"
+            );
+            let file = dir.path().join(rel);
             let v = read_vti(&file, None).unwrap();
             assert_eq!(v.data, VolumeData::U8(vec![k as u8 + 1, 0]));
         }
@@ -1371,5 +1488,56 @@ mod tests {
         let p2 = dir.path().join("mixed.pvd");
         assert!(write_pvd(&Artifact::Series(mixed), &p2, &Provenance::default()).is_err());
         assert!(!p2.exists() && !dir.path().join("mixed_0000.vti").exists());
+    }
+
+    /// Issue 17: a series is replaced as a set. A rewrite that fails after some frames
+    /// (standing in for a kill) leaves the old `.pvd` naming only old, complete frames; a
+    /// successful rewrite leaves one frame folder.
+    #[test]
+    fn pvd_series_is_replaced_as_a_set() {
+        let img = |v: u8, n: usize| {
+            Artifact::PhaseImage(grainpipe_core::PhaseImage {
+                grid: grainpipe_core::Grid {
+                    dims: [2, 1, 1],
+                    spacing: [1.0; 3],
+                    origin: [0.0; 3],
+                    periodic: [false; 3],
+                },
+                labels: vec![v; n],
+                phases: vec![],
+            })
+        };
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("s.pvd");
+        let frames = |v: u8| Series {
+            frames: (0..3).map(|k| (k as f64, img(v, 2))).collect(),
+        };
+        write_pvd(&Artifact::Series(frames(1)), &path, &Provenance::default()).unwrap();
+        // The third frame is malformed: the write stops after two frames.
+        let mut broken = frames(2);
+        broken.frames[2].1 = img(2, 5);
+        assert!(write_pvd(&Artifact::Series(broken), &path, &Provenance::default()).is_err());
+        let read_all = || -> Vec<VolumeData> {
+            let text = std::fs::read_to_string(&path).unwrap();
+            let root = parse_xml(&text).unwrap();
+            root.find("Collection")
+                .unwrap()
+                .children
+                .iter()
+                .map(|set| {
+                    read_vti(&dir.path().join(set.attr("file").unwrap()), None)
+                        .unwrap()
+                        .data
+                })
+                .collect()
+        };
+        assert_eq!(read_all(), vec![VolumeData::U8(vec![1, 1]); 3], "mixed set");
+        write_pvd(&Artifact::Series(frames(3)), &path, &Provenance::default()).unwrap();
+        assert_eq!(read_all(), vec![VolumeData::U8(vec![3, 3]); 3]);
+        let folders = std::fs::read_dir(dir.path())
+            .unwrap()
+            .filter(|e| e.as_ref().unwrap().path().is_dir())
+            .count();
+        assert_eq!(folders, 1, "earlier frame folders are removed");
     }
 }

@@ -452,15 +452,27 @@ fn pvd_of_a_collection_names_its_parts_and_refuses_mixed_kinds() {
     };
     write_pvd(&Artifact::Collection(two), &p, &prov()).unwrap();
     let text = std::fs::read_to_string(&p).unwrap();
+    // frames live in a fresh folder `grains_frames_<tag>/` (a series is replaced as a set)
+    let folder = text
+        .split("file=\"")
+        .nth(1)
+        .and_then(|r| r.split('/').next())
+        .unwrap()
+        .to_string();
+    assert!(folder.starts_with("grains_frames_"), "{text}");
     assert!(
-        text.contains("part=\"0\" name=\"a\" file=\"grains_0000.vtp\""),
+        text.contains(&format!(
+            "part=\"0\" name=\"a\" file=\"{folder}/grains_0000.vtp\""
+        )),
         "{text}"
     );
     assert!(
-        text.contains("part=\"1\" name=\"b\" file=\"grains_0001.vtp\""),
+        text.contains(&format!(
+            "part=\"1\" name=\"b\" file=\"{folder}/grains_0001.vtp\""
+        )),
         "{text}"
     );
-    assert!(d.path().join("grains_0001.vtp").is_file());
+    assert!(d.path().join(&folder).join("grains_0001.vtp").is_file());
     let mixed = Collection {
         items: vec![
             ("a".into(), Artifact::Packing(packing())),
@@ -506,10 +518,21 @@ fn tensor_and_graph_csv_layout() {
         lines[0],
         "# tensor permeability unit=m^2 convention=Voigt shape=3x3"
     );
-    let row1: Vec<f64> = lines[2].split(',').map(|x| x.parse().unwrap()).collect();
+    // Then the provenance as `#` lines (issue 17: every file carries it), one per entry.
+    assert_eq!(lines[1], "# seed: 7");
+    assert_eq!(lines[2], "# pipeline: \"name: t\\nstages: []\\n\"");
+    let data: Vec<&str> = lines
+        .iter()
+        .copied()
+        .filter(|l| !l.starts_with('#'))
+        .collect();
+    let row1: Vec<f64> = data[1].split(',').map(|x| x.parse().unwrap()).collect();
     assert_eq!(row1, tensor().values[3..6]);
     write_csv(&Artifact::ContactGraph(graph()), &p, &prov()).unwrap();
     let text = std::fs::read_to_string(&p).unwrap();
+    let text = text
+        .strip_prefix("# seed: 7\n# pipeline: \"name: t\\nstages: []\\n\"\n")
+        .expect("provenance block first");
     assert_eq!(
         text,
         // Bond attributes follow, empty on the unbonded contact (2, 1).

@@ -615,7 +615,18 @@ pub extern "C" fn __run<S: StageSet>(
 
 #[doc(hidden)]
 pub extern "C" fn __metadata<S: StageSet>() -> GpStr {
-    GpStr::new(S::metadata())
+    // A panic must not unwind out of an `extern "C"` function (that aborts the host, and with
+    // it `pipe list`): it becomes `{"panic": message}`, which the host reports as an error.
+    // The text is leaked: the contract says metadata lives as long as the library.
+    match catch_unwind(S::metadata) {
+        Ok(m) => GpStr::new(m),
+        Err(p) => {
+            static PANIC: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+            let text =
+                PANIC.get_or_init(|| format!("{{\"panic\":{}}}", json_string(&panic_message(p))));
+            GpStr::new(text)
+        }
+    }
 }
 
 /// Exports the given stages (expressions of types implementing [`PluginStage`]) from a

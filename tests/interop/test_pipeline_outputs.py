@@ -37,7 +37,7 @@ def run(tmp_path_factory):
 
 def report(out, name):
     with open(out / name) as f:
-        rows = list(csv.reader(f))
+        rows = [r for r in csv.reader(f) if r and not r[0].startswith("#")]
     header = [h.split(" [")[0] for h in rows[0]]
     return dict(zip(header, (float(v) for v in rows[1])))
 

@@ -25,8 +25,16 @@ fn meta(id: &'static str, doc: &'static str) -> StageMeta {
     }
 }
 
+/// Asks the host for 2^37 f64 (1 TiB): the host must refuse, not abort.
+pub struct Huge;
+
 impl PluginStage for Panics {
     fn meta(&self) -> StageMeta {
+        // The host must survive a panic in the metadata call too (it would abort `pipe list`);
+        // the hardening tests set this variable to provoke one.
+        if std::env::var_os("GRAINPIPE_MISBEHAVE_PANIC_IN_METADATA").is_some() {
+            panic!("deliberate panic in metadata");
+        }
         meta("misbehave.panic", "Panics in run.")
     }
     fn run(
@@ -66,4 +74,25 @@ impl PluginStage for Overflows {
     }
 }
 
-export_stages!(Panics, Overflows);
+impl PluginStage for Huge {
+    fn meta(&self) -> StageMeta {
+        meta("misbehave.huge", "Asks for an output of 2^37 f64 (1 TiB).")
+    }
+    fn run(
+        &self,
+        _: &str,
+        _: &[ArtifactView],
+        out: &mut Outputs,
+        _: &Progress,
+    ) -> Result<(), Failure> {
+        out.declare(
+            "table",
+            "Table",
+            r#"{"name":"t","columns":[{"name":"x","unit":"","dtype":"f64"}]}"#,
+        )?;
+        out.alloc::<f64>("table", "x", &[1usize << 37])?;
+        Ok(())
+    }
+}
+
+export_stages!(Panics, Overflows, Huge);

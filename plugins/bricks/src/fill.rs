@@ -61,10 +61,8 @@ pub struct FillSettings {
 pub enum FillError {
     /// A face or the volume saturated below its goal (with `require_goals`).
     #[error(
-        "{stage}: {what} after {draws} draws ({rejected} rejected; a phase stops after \
-         {max_consecutive} rejections in a row or a rejected fraction above {max_fraction}): \
-         the {region} is saturated; lower the goal, enlarge the brick, or set \
-         require_goals: false"
+        "{stage}: {what} after {draws} draws ({rejected} rejected in all): the {region} is \
+         saturated, the phase stopped because {stop}; {advice}"
     )]
     Saturated {
         stage: &'static str,
@@ -72,8 +70,11 @@ pub enum FillError {
         what: String,
         draws: u64,
         rejected: u64,
-        max_consecutive: u64,
-        max_fraction: f64,
+        /// The condition that stopped the phase, with its numbers and parameter.
+        stop: String,
+        /// What to change: depends on whether this is an error (`require_goals: true`) or
+        /// a warning about a fill that is kept.
+        advice: &'static str,
         /// "face" or "volume".
         region: &'static str,
     },
@@ -159,6 +160,8 @@ pub struct Filler<'a> {
     rng: ChaCha8Rng,
     pub stats: FillStats,
     set: FillSettings,
+    /// Why the last phase stopped short of its goal (for the saturation message).
+    last_stop: String,
 }
 
 fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
@@ -298,6 +301,7 @@ impl<'a> Filler<'a> {
                 domain_volume: volume,
                 ..FillStats::default()
             },
+            last_stop: String::new(),
             set: settings,
         }
     }
@@ -616,6 +620,21 @@ impl<'a> Filler<'a> {
                 || too_many
                 || dead == sites.len()
             {
+                // Name the condition that actually stopped the phase.
+                self.last_stop = if too_many {
+                    format!(
+                        "{q} of its {d} draws were rejected, above max_rejected_fraction = {}",
+                        self.set.max_rejected_fraction
+                    )
+                } else if consecutive >= self.set.max_consecutive_rejections {
+                    format!(
+                        "{consecutive} draws in a row were rejected \
+                         (max_consecutive_rejections = {})",
+                        self.set.max_consecutive_rejections
+                    )
+                } else {
+                    "no site is left where a sphere could touch its parents".to_string()
+                };
                 return Ok((goal(self), consecutive));
             }
             if dead * 2 > sites.len() && sites.len() > 1024 {
@@ -824,8 +843,14 @@ impl<'a> Filler<'a> {
             what,
             draws: self.stats.draws,
             rejected: self.stats.rejected,
-            max_consecutive: self.set.max_consecutive_rejections,
-            max_fraction: self.set.max_rejected_fraction,
+            stop: self.last_stop.clone(),
+            advice: if self.set.require_goals {
+                "lower the goal, enlarge the brick, or set require_goals: false to keep the \
+                 saturated fill"
+            } else {
+                "the saturated fill is kept (require_goals: false); raise \
+                 max_consecutive_rejections or max_rejected_fraction to fill further"
+            },
         };
         if self.set.require_goals {
             Err(e)

@@ -259,7 +259,41 @@ impl BrickParams {
                 ),
             ));
         }
+        let r_tail = self.tail_radius();
+        let upper = self.estimate_spheres(r_tail, sides, numbers);
+        if upper.is_nan() || upper > MAX_SPHERES {
+            return Err(StageError::param(
+                "radius",
+                format!(
+                    "the law's small radii would fill the brick: a saturated fill keeps placing \
+                     spheres as long as about 1 draw in {} fits, i.e. down to r = {r_tail:.3e} m \
+                     (its {:.1} % quantile), which in bricks of {:.3e} x {:.3e} x {:.3e} m \
+                     (std_length x the mean radius {rmean:.3e} m) could make up to {upper:.3e} \
+                     spheres (limit {MAX_SPHERES:e}); narrow the law or truncate it with \
+                     `min:` (a minimum radius), or lower std_length or brick_numbers",
+                    self.max_consecutive_rejections,
+                    100.0 * self.tail_fraction(),
+                    sides[0],
+                    sides[1],
+                    sides[2]
+                ),
+            ));
+        }
         Ok((rmean, sides))
+    }
+
+    /// The fraction of the radius law below which draws stop mattering: a phase ends after
+    /// `max_consecutive_rejections` rejections in a row, so it keeps going while about one
+    /// draw in that many fits, and the gaps are filled down to this quantile of the law.
+    fn tail_fraction(&self) -> f64 {
+        (1.0 / self.max_consecutive_rejections as f64).clamp(1e-3, 0.5)
+    }
+
+    /// The radius at [`Self::tail_fraction`]: the smallest spheres a saturated fill makes in
+    /// bulk. Work and memory are estimated from it, not from the mean radius: with a broad
+    /// law (a lognormal of sigma 2.5) the mean is far above the radii that do the filling.
+    fn tail_radius(&self) -> f64 {
+        self.radius.quantile(self.tail_fraction())
     }
 
     fn estimate_spheres(&self, rmean: f64, sides: [f64; 3], numbers: [usize; 3]) -> f64 {
@@ -293,9 +327,13 @@ impl BrickParams {
         brick: UnitBrick,
     ) -> Preflight<UnitBrick> {
         let n = self.estimate_spheres(rmean, brick.sides, numbers);
+        // Memory from the upper estimate of the count (the law's lower tail fills the gaps).
+        let upper = self
+            .estimate_spheres(self.tail_radius(), brick.sides, numbers)
+            .max(n);
         // The same product as `assemble`, so the announced box is the produced one exactly.
         let size = [0, 1, 2].map(|a| brick.sides[a] * numbers[a] as f64);
-        Preflight::from_info(info, (n * 400.0) as u64)
+        Preflight::from_info(info, (upper * 400.0) as u64)
             .announce(
                 "packing",
                 ArtifactMeta::packing([0.0; 3], size, [false; 3])

@@ -270,6 +270,29 @@ pub struct LibraryParams {
     /// drop clumps whose bounding-sphere diameter (after `scale`) exceeds this before drawing; 0 = no limit (paper, section 3.5: fixed to the layer thickness, 280 um)
     #[param(default = Q::new(0.0))]
     pub max_bounding_diameter: Q<Length>,
+    /// `clumps` keeps the grains' shapes; `equivalent_spheres` replaces every drawn clump by the sphere of the same volume at its centroid (paper, section 4.4: sphere microstructures with the grains' volume distribution)
+    #[param(ty = "one of: clumps, equivalent_spheres", default = "clumps".into())]
+    pub shape: String,
+}
+
+/// The sphere of the clump's volume centred on its centroid, as a one-sphere clump, so that
+/// a sphere packing drawn from a grain library has the grains' volume distribution.
+pub fn equivalent_sphere(c: &Clump) -> Clump {
+    use std::f64::consts::PI;
+    let r = (3.0 * c.volume / (4.0 * PI)).cbrt();
+    // A solid sphere per unit density: I = (2/5) m r^2 with m = (4/3) pi r^3.
+    let inertia = 8.0 / 15.0 * PI * r.powi(5);
+    Clump {
+        spheres: vec![ClumpSphere {
+            offset: [0.0; 3],
+            radius: r,
+        }],
+        volume: c.volume,
+        bounding_radius: r,
+        principal_inertia: [inertia; 3],
+        principal_axes: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        source: format!("{} (equivalent sphere)", c.source),
+    }
 }
 
 /// Indices of `count` clumps drawn by bounding-sphere diameter `d`: scrambled Sobol points
@@ -399,6 +422,12 @@ impl TypedStage for Library {
                 format!("`{}`: use sobol, random or all", p.sampling),
             ));
         }
+        if !["clumps", "equivalent_spheres"].contains(&p.shape.as_str()) {
+            return Err(StageError::param(
+                "shape",
+                format!("`{}`: use clumps or equivalent_spheres", p.shape),
+            ));
+        }
         if !(p.scale.is_finite() && p.scale > 0.0) {
             return Err(StageError::param(
                 "scale",
@@ -492,14 +521,26 @@ impl TypedStage for Library {
         let lib = ClumpLibrary {
             clumps: picked
                 .iter()
-                .map(|&i| full.clumps[i].scaled(p.scale))
+                .map(|&i| {
+                    let c = full.clumps[i].scaled(p.scale);
+                    if p.shape == "equivalent_spheres" {
+                        equivalent_sphere(&c)
+                    } else {
+                        c
+                    }
+                })
                 .collect(),
             source: format!(
-                "{} | clumps.library {} x{} scale {}",
+                "{} | clumps.library {} x{} scale {}{}",
                 full.source,
                 p.sampling,
                 picked.len(),
-                p.scale
+                p.scale,
+                if p.shape == "equivalent_spheres" {
+                    " as equivalent spheres"
+                } else {
+                    ""
+                }
             ),
         };
         let mut o = Outputs::new();

@@ -346,3 +346,44 @@ fn harmonics_directory_resolves_to_the_shipped_data() {
         .unwrap();
     assert!(spec.reads_file);
 }
+
+/// `shape: equivalent_spheres` (paper, section 4.4) keeps the drawn grains' volumes: every
+/// library entry is one sphere whose volume, (4/3) pi r^3, equals the volume of the clump of
+/// the same source grain, with the inertia of a solid sphere, (2/5) m r^2.
+#[test]
+fn equivalent_spheres_keep_the_grains_volume_distribution() {
+    let root = workspace_root(env!("CARGO_MANIFEST_DIR"));
+    let out = tempfile::tempdir().unwrap();
+    let res = run_pipeline(
+        &registry(),
+        &root,
+        "clumps.yaml",
+        &["clumps.alpha=0.6", "library.shape=equivalent_spheres"],
+        out.path(),
+    )
+    .unwrap();
+    let full = res.outputs["clumps"]["library"].as_clump_library().unwrap();
+    let lib = res.outputs["library"]["library"]
+        .as_clump_library()
+        .unwrap();
+    assert_eq!(lib.clumps.len(), 20);
+    for c in &lib.clumps {
+        let grain = c.source.trim_end_matches(" (equivalent sphere)");
+        let original = full
+            .clumps
+            .iter()
+            .find(|o| o.source == grain)
+            .unwrap_or_else(|| panic!("no clump from {grain}"));
+        assert_eq!(c.spheres.len(), 1);
+        let r = c.spheres[0].radius;
+        let v_sphere = 4.0 / 3.0 * std::f64::consts::PI * r.powi(3);
+        assert!((v_sphere / original.volume - 1.0).abs() < 1e-12);
+        assert!((c.volume / original.volume - 1.0).abs() < 1e-12);
+        assert_eq!(c.spheres[0].offset, [0.0; 3]);
+        assert_eq!(c.bounding_radius, r);
+        let inertia = 0.4 * v_sphere * r * r;
+        for i in c.principal_inertia {
+            assert!((i / inertia - 1.0).abs() < 1e-12);
+        }
+    }
+}

@@ -155,3 +155,72 @@ fn a_rotated_image_gives_the_rotated_tensor_and_the_tensor_is_symmetric() {
         assert!(asym < 1e-6, "{d:?}: asymmetry {asym:.3e}");
     }
 }
+
+/// Hashin's neutral composite sphere: a core (K1, G1) of volume fraction c inside a shell
+/// (K2, G2), embedded in a matrix of bulk modulus
+///   K* = K2 + c (K1 - K2) / (1 + (1 - c) (K1 - K2) / (K2 + 4 G2 / 3)),
+/// leaves a hydrostatic strain field in the matrix undisturbed (Hashin 1962), whatever the
+/// matrix shear modulus. So the periodic cell's apparent bulk modulus, sum_ij C_ij / 9 over
+/// the normal block, is exactly K*, for any arrangement — up to the staircase discretisation of
+/// the two spheres, for which the realized voxel fractions enter c (measured at 40^3:
+/// staggered +0.46 %, hex8 +1.25 %; 2 % allowed).
+#[test]
+fn hashin_coated_sphere_is_neutral_under_hydrostatic_load() {
+    let n = 40;
+    let (a, b) = (14.5, 19.0); // core and shell radius [voxels]
+    let img = image([n; 3], 1.0 / n as f64, |x, y, z| {
+        let r2: f64 = [x, y, z]
+            .iter()
+            .map(|&v| (v as f64 + 0.5 - n as f64 / 2.0).powi(2))
+            .sum();
+        if r2 < a * a {
+            1
+        } else if r2 < b * b {
+            2
+        } else {
+            3
+        }
+    });
+    let (n1, n2) = (img.fraction(1), img.fraction(2));
+    let c = n1 / (n1 + n2);
+    let (core, shell) = (Iso::from_e_nu(20.0, 0.2), Iso::from_e_nu(1.5, 0.3));
+    let (k1, k2, g2) = (core.bulk(), shell.bulk(), shell.mu);
+    let k_star = k2 + c * (k1 - k2) / (1.0 + (1.0 - c) * (k1 - k2) / (k2 + 4.0 * g2 / 3.0));
+    // A matrix of bulk modulus K* and an unrelated shear modulus (nu = 0.3 at K*).
+    let e_m = 3.0 * k_star * (1.0 - 2.0 * 0.3);
+    // Reuss and Voigt bounds on the bulk modulus of the whole cell, to show the test can
+    // tell a right answer from a merely plausible one.
+    let f = [n1, n2, img.fraction(3)];
+    let ks = [k1, k2, k_star];
+    let voigt: f64 = (0..3).map(|i| f[i] * ks[i]).sum();
+    let reuss = 1.0 / (0..3).map(|i| f[i] / ks[i]).sum::<f64>();
+    for d in [Discretization::Staggered, Discretization::Hex8] {
+        let mut p = params(
+            materials(&[(1, 20.0, 0.2), (2, 1.5, 0.3), (3, e_m, 0.3)]),
+            d,
+            Solver::Cg,
+            1e-7,
+        );
+        p.load_cases = vec![
+            grainpipe_fft::elasticity::LoadCase::Xx,
+            grainpipe_fft::elasticity::LoadCase::Yy,
+            grainpipe_fft::elasticity::LoadCase::Zz,
+        ];
+        let cst = stiffness(&img, &p).unwrap().stiffness;
+        let k: f64 = (0..3)
+            .flat_map(|i| (0..3).map(move |j| (i, j)))
+            .map(|(i, j)| cst[i][j])
+            .sum::<f64>()
+            / 9.0;
+        eprintln!(
+            "{d:?}: c {c:.4}, K {k:.5}, K* {k_star:.5} ({:+.3} %), Reuss {reuss:.4}, Voigt {voigt:.4}",
+            100.0 * (k / k_star - 1.0)
+        );
+        assert!(
+            (k / k_star - 1.0).abs() < 0.02,
+            "{d:?}: K {k} vs Hashin K* {k_star}"
+        );
+        // and the error is small against the spread a wrong mixing rule would show
+        assert!((k / k_star - 1.0).abs() < 0.05 * (voigt - reuss) / k_star);
+    }
+}

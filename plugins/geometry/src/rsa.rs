@@ -61,6 +61,27 @@ fn draw_radii(p: &RsaParams, ctx_rng: &mut impl rand::Rng, target_volume: f64) -
     radii
 }
 
+/// Bytes of one empty cell of the cell list (a `Vec` header).
+const CELL_BYTES: u64 = 24;
+
+/// The cell edge for `count` spheres of largest radius `rmax` in a box of `size`: at least one
+/// largest diameter (the 27 adjacent cells must hold every overlap candidate), and no smaller
+/// than the box volume per sphere, so the cells are about as many as the spheres. Sized from
+/// the diameter alone, a sparse box (`volume_fraction: 1e-9` in a 25 cm box of 25 um spheres)
+/// would get the largest cell list allowed for a single sphere.
+fn cell_edge(size: [f64; 3], rmax: f64, count: f64) -> f64 {
+    let per_sphere = (size.iter().product::<f64>() / count.max(1.0)).cbrt();
+    (2.0 * rmax).max(per_sphere)
+}
+
+/// How many cells [`cell_edge`] gives (before the cell list's own caps).
+fn cell_count(size: [f64; 3], rmax: f64, count: f64) -> u64 {
+    let edge = cell_edge(size, rmax, count);
+    size.iter()
+        .map(|&l| (l / edge).floor().clamp(1.0, 1024.0) as u64)
+        .product()
+}
+
 /// Expected sphere volume, estimated from 4096 quantiles (deterministic, cheap).
 fn mean_sphere_volume(d: &SizeDistribution) -> f64 {
     let n = 4096;
@@ -156,6 +177,7 @@ impl TypedStage for Rsa {
                 "about {count:.0} spheres: more than the 50 million this stage handles; shrink the box"
             )));
         }
+        let cells = cell_count(size, rmax, count);
         let packing =
             ArtifactMeta::packing([0.0; 3], size, p.periodic).with_count(count as u64, None);
         let packing = match p.radius {
@@ -163,7 +185,11 @@ impl TypedStage for Rsa {
             _ => packing.with_length_scale(2.0 * p.radius.mean()),
         };
         let report = ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1]));
-        Ok(Preflight::from_info(&self.info(), (count as u64) * 200)
+        // Bodies (~200 bytes each with their cell entry) and the cell list's empty cells.
+        let memory = (count as u64)
+            .saturating_mul(200)
+            .saturating_add(cells.saturating_mul(CELL_BYTES));
+        Ok(Preflight::from_info(&self.info(), memory)
             .announce("packing", packing)
             .announce("report", report))
     }
@@ -182,15 +208,25 @@ impl TypedStage for Rsa {
         // Largest first: small spheres still fit into the gaps left by large ones.
         radii.sort_by(|a, b| b.total_cmp(a));
         let rmax = radii[0];
-        let mut cells = CellList::new([0.0; 3], size, p.periodic, 2.0 * rmax);
+        let mut cells = CellList::new(
+            [0.0; 3],
+            size,
+            p.periodic,
+            cell_edge(size, rmax, radii.len() as f64),
+        );
         let mut packing = Packing::new(Domain::boxed([0.0; 3], size, p.periodic));
         let mut attempts_total = 0u64;
         let mut placed_volume = 0.0;
         let n = radii.len();
         for (k, &r) in radii.iter().enumerate() {
             let mut placed = false;
-            for _ in 0..p.max_attempts_per_sphere {
+            for attempt in 0..p.max_attempts_per_sphere {
                 attempts_total += 1;
+                // Near jamming one sphere can take millions of attempts: Ctrl-C must not wait
+                // for the next progress report.
+                if attempt % 4096 == 4095 {
+                    ctx.check_cancelled()?;
+                }
                 let c: [f64; 3] = std::array::from_fn(|a| {
                     if p.periodic[a] {
                         rng.random::<f64>() * size[a]

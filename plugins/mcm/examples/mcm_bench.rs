@@ -1,11 +1,12 @@
 //! Benchmark of mcm.stacked against the paper's Tables 4-5 (Donval et al. 2025, section 3.5):
 //! layers of (L um)^2 x 280 um at 50 % with an 8 um gap, 30 000 iteration limit, several seeds.
 //!
-//! cargo run --release -p grainpipe-mcm --example mcm_bench -- [seeds, 30] [grains, sand]
+//! cargo run --release -p grainpipe-mcm --example mcm_bench -- [seeds, 30] [grains, $MCM_FAMILY or sand]
 //!   grains = sand (the real grains of data/sand-grains as clumps at alpha = MCM_ALPHA,
 //!   default 0.99: 186 spheres per clump, the paper's 150-200; bounding diameter capped at
-//!   the 280 um layer thickness as in the paper; built by pipelines/clumps.yaml) or spheres
-//!   (lognormal, median radius 70 um, D50 = 140 um, radii 40-120 um).
+//!   the 280 um layer thickness as in the paper), sand-large, synthetic (harder families,
+//!   see `family_library`) or spheres (lognormal, median radius 70 um, D50 = 140 um, radii
+//!   40-120 um).
 //! Env MCM_CASES="layers:size_um,..." overrides the cases (default: Table 4, then Table 5);
 //! MCM_PHI (0.5), MCM_GAP (8e-6 m), MCM_TOL (1e-2), MCM_STEP (3000), MCM_STEPS (30),
 //! MCM_BETA (3) override the fraction, gap, tolerance, iterations per contraction step,
@@ -23,26 +24,57 @@ use serde_json::json;
 use std::sync::Arc;
 use std::time::Instant;
 
-fn sand_library() -> ClumpLibrary {
+/// The clump library of a grain family (env MCM_FAMILY):
+/// - `sand` (default): the real grains of data/sand-grains (pipelines/clumps.yaml at alpha =
+///   MCM_ALPHA, default 0.99: 186 spheres per clump, the paper's 150-200), bounding diameter
+///   capped at MCM_CAP (default 280 um, the layer thickness, as in the paper);
+/// - `sand-large`: the same grains scaled by MCM_SCALE (default 1.35) and capped at MCM_CAP
+///   (default 275 um): larger grains, most of them nearly as wide as the 280 um layer (the
+///   second sand of issue 20: the largest 275 um across);
+/// - `synthetic`: `grains.synthetic` with stronger elongation and a wider size spread than
+///   the shipped sand (MCM_SYN_COUNT grains, default 40: length/thickness 3.0 instead of
+///   1.82, width/thickness 1.8 instead of 1.37, aspect spread 0.35 instead of 0.2, log-normal
+///   D50 140 um with sigma 0.4 truncated to 60-260 um, 5 um voxels instead of 0.25), capped at MCM_CAP (default 280 um).
+fn family_library(family: &str) -> ClumpLibrary {
     use grainpipe_core::engine::run_quietly;
     use grainpipe_core::pipeline::PipelineDoc;
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../..");
-    let mut doc = PipelineDoc::load(&root.join("pipelines/clumps.yaml")).unwrap();
-    doc.exports.clear();
     // The paper's clumps have 150-200 spheres (CT voxel masks at alpha = 0.9); our smooth
     // harmonic grains reach that complexity at alpha = 0.99 (188 spheres on average).
-    let alpha = std::env::var("MCM_ALPHA").unwrap_or_else(|_| "0.99".into());
-    doc.apply_override(&format!("clumps.alpha={alpha}"))
-        .unwrap();
-    // Paper, section 3.5: the largest bounding diameter is the layer thickness, 280 um.
-    doc.apply_override("library.sampling=all").unwrap();
-    doc.apply_override("library.max_bounding_diameter=280 um")
-        .unwrap();
+    let alpha = env_str("MCM_ALPHA", "0.99");
+    let (grains, scale, cap) = match family {
+        "sand" => (
+            "use: grains.from_harmonics, with: { directory: data/sand-grains/MA107-6-fine, voxel_size: 4 um, d50: 140 um }".to_string(),
+            "1.0".to_string(),
+            env_str("MCM_CAP", "280 um"),
+        ),
+        "sand-large" => (
+            "use: grains.from_harmonics, with: { directory: data/sand-grains/MA107-6-fine, voxel_size: 4 um, d50: 140 um }".to_string(),
+            env_str("MCM_SCALE", "1.35"),
+            env_str("MCM_CAP", "275 um"),
+        ),
+        "synthetic" => (
+            format!(
+                "use: grains.synthetic, with: {{ count: {}, length_to_thickness: 3.0, width_to_thickness: 1.8, aspect_spread: 0.35, size: {{ kind: lognormal, median: 140 um, sigma: 0.4, min: 60 um, max: 260 um }}, voxel_size: 5 um }}",
+                env("MCM_SYN_COUNT", 40.0) as u64
+            ),
+            "1.0".to_string(),
+            env_str("MCM_CAP", "280 um"),
+        ),
+        other => panic!("unknown MCM_FAMILY {other}: sand, sand-large, synthetic or spheres"),
+    };
+    // Paper, section 3.5: the largest bounding diameter is capped (at the layer thickness).
+    let text = format!(
+        "name: family\nseed: {}\nstages:\n  - {{ id: grains, {} }}\n  - {{ id: clumps, use: clumps.garcia, in: {{ grains: grains.grains }}, with: {{ alpha: {alpha} }} }}\n  - {{ id: library, use: clumps.library, in: {{ library: clumps.library }}, with: {{ sampling: all, scale: {scale}, max_bounding_diameter: {cap} }} }}\n",
+        env("MCM_SYN_SEED", 7.0) as u64,
+        grains
+    );
+    let doc = PipelineDoc::parse(&root.join("family.yaml"), text).unwrap();
     std::env::set_current_dir(&root).unwrap();
     let mut r = grainpipe_core::Registry::new();
     grainpipe_clumps::register(&mut r);
     let res = run_quietly(&doc, &r).unwrap();
-    // All clumps up to 280 um (no subsample): mcm.stacked draws by Sobol itself.
+    // All clumps up to the cap (no subsample): mcm.stacked draws by Sobol itself.
     res.outputs["library"]["library"]
         .as_clump_library()
         .unwrap()
@@ -63,14 +95,19 @@ fn env_str(key: &str, default: &str) -> String {
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let seeds: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(30);
-    let grains = args.get(2).cloned().unwrap_or_else(|| "sand".into());
-    let lib = (grains == "sand").then(sand_library);
+    let grains = args
+        .get(2)
+        .cloned()
+        .unwrap_or_else(|| env_str("MCM_FAMILY", "sand"));
+    let lib = (grains != "spheres").then(|| family_library(&grains));
     if let Some(l) = &lib {
         let n: usize = l.clumps.iter().map(|c| c.spheres.len()).sum();
         println!(
-            "library: {} clumps, {:.0} spheres per clump on average",
+            "library ({grains}): {} clumps, {:.0} spheres per clump on average, bounding diameters {:.0}-{:.0} um",
             l.clumps.len(),
-            n as f64 / l.clumps.len() as f64
+            n as f64 / l.clumps.len() as f64,
+            l.clumps.iter().map(|c| 2e6 * c.bounding_radius).fold(f64::INFINITY, f64::min),
+            l.clumps.iter().map(|c| 2e6 * c.bounding_radius).fold(0.0, f64::max)
         );
     }
     let cases: Vec<(usize, f64)> = std::env::var("MCM_CASES")

@@ -4,7 +4,7 @@
 //! Verlet lists built from a periodic cell list over bounding spheres (Remark 3), periodic
 //! images in x, y, z (Remark 4), a minimum gap (Remark 5) and the soft layer box (Remark 4).
 
-use grainpipe_core::spatial::{min_image, CellList};
+use grainpipe_core::spatial::CellList;
 use grainpipe_core::ParamChoice;
 use nalgebra::{UnitQuaternion, Vector3};
 use rayon::prelude::*;
@@ -121,8 +121,59 @@ pub struct System {
     nbs: Vec<Vec<Nb>>,
     /// Sphere-level Verlet lists (Remark 3): per body, the sphere pairs within the skin.
     pairs: Vec<SpherePairs>,
-    moved: Vec<f64>,
+    /// Centroids and orientations when the lists were built: a list stays valid while every
+    /// grain's displacement from there (|dx| + b |dtheta|, a bound on any of its spheres'
+    /// displacement) is below half the skin. Measured from the build state, not summed along
+    /// the path: FIRE oscillates near convergence, and a summed path would rebuild the lists
+    /// every few iterations for nothing.
+    built_at: Vec<(V3, UnitQuaternion<f64>)>,
+    /// The lists must be rebuilt before the next evaluation (grains added or moved
+    /// collectively by a contraction, a shake or a relocation).
+    stale: bool,
+    /// First sphere of each grain in the flat array of world offsets.
+    first: Vec<usize>,
     skin: f64,
+}
+
+/// Grains already placed, in a periodic cell list of their wrapped centroids: what a new
+/// grain is checked against when it is placed or relocated.
+pub struct Neighbourhood {
+    cells: CellList,
+    wrapped: Vec<V3>,
+    bmax: f64,
+}
+
+impl Neighbourhood {
+    /// An empty neighbourhood in the system's current cell.
+    pub fn new(sys: &System) -> Self {
+        let bmax = sys.shapes.iter().map(|s| s.bound).fold(0.0, f64::max);
+        Neighbourhood {
+            cells: CellList::new([0.0; 3], sys.cell, [true; 3], 2.0 * bmax + sys.gap),
+            wrapped: vec![V3::zeros(); sys.grains.len()],
+            bmax,
+        }
+    }
+
+    /// Adds grain `j` at its current position.
+    pub fn add(&mut self, sys: &System, j: usize) {
+        let dims = self.cells.dims();
+        let w = V3::from([0, 1, 2].map(|a| {
+            let l = sys.cell[a];
+            let w = sys.grains[j].pos[a].rem_euclid(l);
+            // As in `System::rebuild`: a position within rounding of the period is stored in
+            // cell 0, so its images are reported from w - l.
+            if (w / (l / dims[a] as f64)).floor() as usize >= dims[a] {
+                w - l
+            } else {
+                w
+            }
+        }));
+        if self.wrapped.len() <= j {
+            self.wrapped.resize(j + 1, V3::zeros());
+        }
+        self.wrapped[j] = w;
+        self.cells.insert(j as u32, w.into());
+    }
 }
 
 /// Outcome of one minimisation.
@@ -187,6 +238,10 @@ struct Eval {
 /// Verlet skin in mean bounding radii: lists hold every sphere pair within this distance of
 /// touching and are rebuilt after half of it of motion.
 const SKIN: f64 = 0.1;
+/// Verlet skin for packings of single spheres, in radii.
+const SKIN_SPHERES: f64 = 0.3;
+/// Bodies per rayon task: below this, scheduling costs more than the contacts of a body.
+const PAR_MIN: usize = 32;
 
 /// Iterations over which the largest violation must fall by a tenth, else the minimisation
 /// is stalled (jammed) and stops early.
@@ -217,7 +272,9 @@ impl System {
             relaxation: Relaxation::default(),
             nbs: vec![Vec::new(); n],
             pairs: vec![Vec::new(); n],
-            moved: vec![f64::INFINITY; n],
+            built_at: Vec::new(),
+            stale: true,
+            first: Vec::new(),
             skin: 0.0,
         }
     }
@@ -233,7 +290,8 @@ impl System {
     /// mobile grains is listed once, on the lower index.
     pub fn rebuild(&mut self) {
         let n = self.grains.len();
-        self.skin = SKIN * (0..n).map(|i| self.bound(i)).sum::<f64>() / n.max(1) as f64;
+        self.skin = self.skin_width();
+        self.index_spheres();
         let bmax = (0..n).map(|i| self.bound(i)).fold(0.0, f64::max);
         let cut = 2.0 * bmax + self.gap + self.skin;
         let l = self.cell;
@@ -255,11 +313,13 @@ impl System {
             })));
         }
         let world = self.world();
+        let first = &self.first;
         let grains = &self.grains;
         let shapes = &self.shapes;
         let reach_gap = self.gap + self.skin;
         let lists: Vec<(Vec<Nb>, SpherePairs)> = (0..n)
             .into_par_iter()
+            .with_min_len(PAR_MIN)
             .map(|i| {
                 let mut nbs = Vec::new();
                 let mut pairs = Vec::new();
@@ -290,20 +350,20 @@ impl System {
                     let pi = grains[i].pos;
                     let cj = grains[j].pos + shift;
                     // Remark 3: only spheres inside the other's bounding sphere.
+                    let wj = &world[first[j]..first[j] + sj.radii.len()];
+                    let wi = &world[first[i]..first[i] + si.radii.len()];
                     let near_j: Vec<u32> = (0..sj.radii.len())
-                        .filter(|&b| {
-                            (cj + world[j][b] - pi).norm() < sj.radii[b] + si.bound + reach_gap
-                        })
+                        .filter(|&b| (cj + wj[b] - pi).norm() < sj.radii[b] + si.bound + reach_gap)
                         .map(|b| b as u32)
                         .collect();
                     let first = pairs.len() as u32;
-                    for a in 0..si.radii.len() {
-                        let pa = pi + world[i][a];
+                    for (a, oa) in wi.iter().enumerate() {
+                        let pa = pi + oa;
                         if (pa - cj).norm() >= si.radii[a] + sj.bound + reach_gap {
                             continue;
                         }
                         for &b in &near_j {
-                            let pb = cj + world[j][b as usize];
+                            let pb = cj + wj[b as usize];
                             if (pa - pb).norm() < si.radii[a] + sj.radii[b as usize] + reach_gap {
                                 pairs.push((a as u32, b));
                             }
@@ -324,20 +384,54 @@ impl System {
             })
             .collect();
         (self.nbs, self.pairs) = lists.into_iter().unzip();
-        self.moved = vec![0.0; n];
+        self.built_at = self.grains.iter().map(|g| (g.pos, g.rot)).collect();
+        self.stale = false;
     }
 
-    fn world(&self) -> Vec<Vec<V3>> {
+    /// Verlet skin: `SKIN` mean bounding radii for clumps; `SKIN_SPHERES` when every grain
+    /// is a single sphere (a sphere pair costs no more than a grain pair there, so a wider
+    /// skin trades a few more listed pairs for far fewer rebuilds).
+    fn skin_width(&self) -> f64 {
+        let n = self.grains.len();
+        let bmean = (0..n).map(|i| self.bound(i)).sum::<f64>() / n.max(1) as f64;
+        let spheres_only = self.shapes.iter().all(|s| s.radii.len() == 1);
+        bmean * if spheres_only { SKIN_SPHERES } else { SKIN }
+    }
+
+    /// The flat sphere numbering: grain i owns world offsets `first[i]..first[i + 1]`.
+    fn index_spheres(&mut self) {
+        self.first.clear();
+        let mut k = 0;
+        for g in &self.grains {
+            self.first.push(k);
+            k += self.shapes[g.shape].radii.len();
+        }
+        self.first.push(k);
+    }
+
+    /// Body-frame offsets rotated to the world frame, one flat array for every sphere (no
+    /// allocation per grain: with single-sphere grains the per-grain vectors cost more than
+    /// the contacts).
+    fn world(&self) -> Vec<V3> {
+        let mut w = Vec::with_capacity(self.first.last().copied().unwrap_or(0));
+        for g in &self.grains {
+            w.extend(self.shapes[g.shape].offsets.iter().map(|o| g.rot * o));
+        }
+        w
+    }
+
+    /// Largest displacement bound (|dx| + b |dtheta|) of any mobile grain since the lists were
+    /// built.
+    fn max_displacement(&self) -> f64 {
         self.grains
-            .par_iter()
-            .map(|g| {
-                self.shapes[g.shape]
-                    .offsets
-                    .iter()
-                    .map(|o| g.rot * o)
-                    .collect()
+            .iter()
+            .zip(&self.built_at)
+            .enumerate()
+            .filter(|(_, (g, _))| !g.frozen)
+            .map(|(i, (g, (p0, r0)))| {
+                (g.pos - p0).norm() + self.bound(i) * (g.rot * r0.inverse()).angle()
             })
-            .collect()
+            .fold(0.0, f64::max)
     }
 
     /// Forces = -grad_c E and torques = -grad_R E (as axial vectors) of the chosen overlap
@@ -345,11 +439,13 @@ impl System {
     /// order, so the result does not depend on the number of threads.
     fn evaluate(&self) -> Eval {
         let world = self.world();
+        let first = &self.first;
         let gap = self.gap;
         let margin = self.margin;
         let kind = self.relaxation.energy;
         let per: Vec<BodyEval> = (0..self.grains.len())
             .into_par_iter()
+            .with_min_len(PAR_MIN)
             .map(|i| {
                 let gi = &self.grains[i];
                 let si = &self.shapes[gi.shape];
@@ -369,13 +465,15 @@ impl System {
                     let mutual = !gj.frozen && nb.j != i;
                     let w = if nb.j == i { 0.25 } else { 0.5 };
                     let (mut fj, mut tj) = (V3::zeros(), V3::zeros());
+                    let wi = &world[first[i]..first[i + 1]];
+                    let wj = &world[first[nb.j]..first[nb.j + 1]];
                     let mut push = |a: usize, b: usize, fa: V3| {
                         out.minimised += w * fa.norm_squared();
                         out.force += fa;
-                        out.torque += world[i][a].cross(&fa);
+                        out.torque += wi[a].cross(&fa);
                         if mutual {
                             fj -= fa;
-                            tj -= world[nb.j][b].cross(&fa);
+                            tj -= wj[b].cross(&fa);
                         }
                     };
                     // eq. (2.4): delta_ij is the largest sphere-pair overlap.
@@ -383,7 +481,7 @@ impl System {
                     let mut arg: Option<(usize, usize, V3)> = None;
                     for &(a, b) in &self.pairs[i][nb.first as usize..nb.last as usize] {
                         let (a, b) = (a as usize, b as usize);
-                        let d = gi.pos + world[i][a] - (cj + world[nb.j][b]);
+                        let d = gi.pos + wi[a] - (cj + wj[b]);
                         let dist = d.norm();
                         let delta = si.radii[a] + sj.radii[b] + gap - dist;
                         if delta <= 0.0 {
@@ -491,7 +589,7 @@ impl System {
         let max_step = 0.1 * bmin;
         let mut v = vec![V3::zeros(); n];
         let mut w = vec![V3::zeros(); n];
-        if self.moved.len() != n || self.moved.iter().any(|m| !m.is_finite()) {
+        if self.stale || self.built_at.len() != n {
             self.rebuild();
         }
         let [h_c, h_r] = self.relaxation.step_sizes;
@@ -554,7 +652,6 @@ impl System {
                     w.iter_mut().for_each(|x| *x = V3::zeros());
                 }
             }
-            let mut max_moved: f64 = 0.0;
             for i in 0..n {
                 if self.grains[i].frozen {
                     continue;
@@ -577,10 +674,8 @@ impl System {
                 // eq. (2.8): rotation through the exponential map of the axial vector.
                 let ang = dth / b[i];
                 self.grains[i].rot = UnitQuaternion::from_scaled_axis(ang) * self.grains[i].rot;
-                self.moved[i] += dx.norm() + dth.norm();
-                max_moved = max_moved.max(self.moved[i]);
             }
-            if 2.0 * max_moved > self.skin {
+            if 2.0 * self.max_displacement() > self.skin {
                 self.rebuild();
             }
             ev = self.evaluate();
@@ -594,54 +689,42 @@ impl System {
         }
     }
 
-    /// Largest overlap delta_ij (eq. 2.4, with the gap) of grain `i` against grains `others`,
-    /// over the periodic images within one cell of the minimum image (brute force; used for
-    /// the initial placement only).
-    pub fn max_overlap(&self, i: usize, others: std::ops::Range<usize>) -> f64 {
+    /// Largest overlap delta_ij (eq. 2.4, with the gap) of grain `i` against the grains in
+    /// `near`, over every periodic image within reach (used for the initial placement and
+    /// relocations: a cell list, so placing N grains costs O(N), not O(N^2)).
+    pub fn max_overlap(&self, i: usize, near: &Neighbourhood) -> f64 {
         let gi = &self.grains[i];
         let si = &self.shapes[gi.shape];
-        let wi: Vec<V3> = si.offsets.iter().map(|o| gi.pos + gi.rot * o).collect();
+        let pi = V3::from([0, 1, 2].map(|a| gi.pos[a].rem_euclid(self.cell[a])));
+        let wi: Vec<V3> = si.offsets.iter().map(|o| pi + gi.rot * o).collect();
         let mut worst: f64 = 0.0;
-        for j in others {
-            if j == i {
-                continue;
-            }
-            let gj = &self.grains[j];
-            let sj = &self.shapes[gj.shape];
-            let d =
-                V3::from([0, 1, 2].map(|a| min_image(gi.pos[a] - gj.pos[a], self.cell[a], true)));
-            let mut wj: Option<Vec<V3>> = None;
-            for k in 0..27 {
-                let img = V3::new(
-                    (k % 3) as f64 - 1.0,
-                    ((k / 3) % 3) as f64 - 1.0,
-                    (k / 9) as f64 - 1.0,
-                );
-                let shift = V3::new(
-                    img.x * self.cell[0],
-                    img.y * self.cell[1],
-                    img.z * self.cell[2],
-                );
-                // pos_j seen from i: pos_i - d + shift
-                let cj = gi.pos - d + shift;
-                if (gi.pos - cj).norm() >= si.bound + sj.bound + self.gap {
-                    continue;
+        near.cells
+            .visit(pi.into(), si.bound + near.bmax + self.gap, |j, img| {
+                let j = j as usize;
+                if j == i {
+                    return true;
                 }
-                let wj = wj.get_or_insert_with(|| sj.offsets.iter().map(|o| gj.rot * o).collect());
-                for (a, pa) in wi.iter().enumerate() {
-                    for (b, ob) in wj.iter().enumerate() {
-                        let delta = si.radii[a] + sj.radii[b] + self.gap - (pa - (cj + ob)).norm();
+                let gj = &self.grains[j];
+                let sj = &self.shapes[gj.shape];
+                let cj = near.wrapped[j] + V3::from(img);
+                if (pi - cj).norm() >= si.bound + sj.bound + self.gap {
+                    return true;
+                }
+                for (b, o) in sj.offsets.iter().enumerate() {
+                    let pb = cj + gj.rot * o;
+                    for (a, pa) in wi.iter().enumerate() {
+                        let delta = si.radii[a] + sj.radii[b] + self.gap - (pa - pb).norm();
                         worst = worst.max(delta);
                     }
                 }
-            }
-        }
+                true
+            });
         worst
     }
 
     /// Marks the lists stale (after a contraction moved every centroid).
     pub fn invalidate(&mut self) {
-        self.moved = vec![f64::INFINITY; self.grains.len()];
+        self.stale = true;
     }
 }
 

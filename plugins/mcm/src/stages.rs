@@ -2,8 +2,8 @@
 
 use crate::engine::{EnergyKind, Grain, Minimiser, Relaxation, Shape, System};
 use crate::pack::{
-    contract, mean_sphere_volume, place, quat, sphere_volume, sphere_volume_range, uniform, v3,
-    FailReason, Mode, Pick, RunFailure, RunStats, Schedule, Source, PLACE_ATTEMPTS,
+    contract, mean_sphere_volume, place_all, quat, sphere_volume, sphere_volume_range, uniform, v3,
+    FailReason, Mode, Pick, RunFailure, RunStats, Schedule, Source,
 };
 use grainpipe_core::distributions::SizeDistribution;
 use grainpipe_core::spatial::random_quaternion;
@@ -36,9 +36,11 @@ pub struct ContractionParams {
     /// adapts (x1.25 after success, /2 and retry when stuck).
     #[param(default = 30)]
     pub contraction_steps: usize,
-    /// Overlap tolerance relative to the mean bounding radius; the gap is padded by it so the
-    /// final gap is at least min_gap.
-    #[param(default = 1e-2)]
+    /// Overlap tolerance at the final size, relative to the mean bounding radius; the gap is
+    /// padded by it so the final gap is at least min_gap (intermediate sizes stop at 1e-2).
+    // A small padding matters: it inflates every grain, and with it the fraction to reach
+    // (+1.5 % for spheres at 1e-2; BENCHMARKS.md#mcm, issue 20).
+    #[param(default = 1e-3)]
     pub tolerance: f64,
     /// Minimiser iterations allowed per contraction step before it is undone, the rate halved
     /// and the jam shaken loose.
@@ -186,6 +188,7 @@ impl ContractionParams {
             step_iterations: self.step_iterations,
             max_iterations: self.max_iterations,
             shake: self.shake,
+            loose: crate::pack::LOOSE_TOLERANCE / self.tolerance,
         }
     }
 }
@@ -422,20 +425,198 @@ fn grain_source<'a>(
     Ok(Source::Library(lib))
 }
 
-/// A grain wider than the periodic cell would overlap its own image.
-fn check_fits(key: &str, width: f64, shapes: &[Shape]) -> Result<(), StageError> {
+/// A grain whose bounding diameter plus the gap exceeds the periodic cell could touch its
+/// own image (Remark 4 with Remark 5); refused before anything is placed.
+fn check_fits(key: &str, width: f64, gap: f64, shapes: &[Shape]) -> Result<(), StageError> {
     let widest = 2.0 * shapes.iter().map(|s| s.bound).fold(0.0, f64::max);
-    if width < widest {
+    if width < widest + gap {
         return Err(StageError::param(
             key,
             format!(
-                "a drawn grain's bounding diameter ({:.1} um) exceeds the cell width ({:.1} um): it would overlap its own periodic image; enlarge the cell or cap the library (clumps.library max_bounding_diameter)",
+                "a drawn grain's bounding diameter ({:.1} um) plus min_gap ({:.1} um) exceeds the cell width ({:.1} um): it would come closer than min_gap to its own periodic image; enlarge the cell, lower min_gap or cap the library (clumps.library max_bounding_diameter)",
                 widest * 1e6,
+                gap * 1e6,
                 width * 1e6
             ),
         ));
     }
     Ok(())
+}
+
+/// Directions over a hemisphere (Fibonacci lattice) for the thinnest width of a grain.
+const WIDTH_DIRECTIONS: usize = 400;
+
+/// The width of a shape along unit direction `n`: the extent of its spheres' projections.
+fn width_along(s: &Shape, n: nalgebra::Vector3<f64>) -> f64 {
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for (o, r) in s.offsets.iter().zip(&s.radii) {
+        let x = o.dot(&n);
+        lo = lo.min(x - r);
+        hi = hi.max(x + r);
+    }
+    hi - lo
+}
+
+/// The thinnest width of a shape over `WIDTH_DIRECTIONS` directions, less a bound on the
+/// error of the sampling (the width is within bound * spacing^2 of its minimum near it), so
+/// it never exceeds the true thinnest width by more than rounding.
+fn thinnest_width(s: &Shape) -> f64 {
+    let m = WIDTH_DIRECTIONS;
+    let golden = PI * (3.0 - 5f64.sqrt());
+    let w = (0..m)
+        .map(|k| {
+            let z = 1.0 - (k as f64 + 0.5) / m as f64; // upper hemisphere suffices: w(n) = w(-n)
+            let rho = (1.0 - z * z).sqrt();
+            let phi = golden * k as f64;
+            width_along(
+                s,
+                nalgebra::Vector3::new(rho * phi.cos(), rho * phi.sin(), z),
+            )
+        })
+        .fold(f64::INFINITY, f64::min);
+    // Mean spacing of m points on a hemisphere (area 2 pi): sqrt(2 pi / m).
+    let spacing = (2.0 * PI / m as f64).sqrt();
+    (w - s.bound * spacing * spacing).max(0.0)
+}
+
+/// With `periodic_z`, a grain in the first layer meets its own image one layer thickness
+/// above: it fits only if it can lie with its thinnest width plus min_gap within the layer.
+fn check_thickness(t: f64, gap: f64, shapes: &[Shape]) -> Result<(), StageError> {
+    let (k, w) = shapes
+        .iter()
+        .map(thinnest_width)
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+        .unwrap_or((0, 0.0));
+    if w + gap > t {
+        return Err(StageError::param(
+            "layer_thickness",
+            format!(
+                "grain {k} of the layer is {:.1} um thick at its thinnest (bounding diameter {:.1} um); with min_gap {:.1} um it cannot fit a {:.1} um layer that is periodic in z (it would touch its own image one layer above). Raise layer_thickness to at least {:.1} um, cap the grains (clumps.library max_bounding_diameter), or use periodic_z: false",
+                w * 1e6,
+                2e6 * shapes[k].bound,
+                gap * 1e6,
+                t * 1e6,
+                (w + gap) * 1e6 * 1.05
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// Kepler's bound: no packing of equal or unequal spheres is denser than pi / sqrt(18).
+const KEPLER: f64 = 0.7405;
+
+/// Refuses at preflight a `min_gap` that cannot fit:
+/// - against the cell (and the layer): every grain keeps min_gap from its own periodic
+///   images, so min_gap must be below half the cell width (a bare number is metres: `8` is
+///   8 m, which also makes the neighbour search walk (2 cut / cell + 1)^3 periodic images);
+/// - against the grains: each grain keeps min_gap / 2 of clearance all round, so its padded
+///   volume is at least that of its volume-equivalent sphere grown by min_gap / 2 (the sphere
+///   has the least surface for its volume). If the padded grains would fill more than
+///   Kepler's 0.7405 (spheres) or the whole cell (clumps), no packing exists;
+/// - with `periodic_z`, against the layer thickness: a grain of the mean diameter plus the
+///   gap must fit the thickness (exactly per grain, with its thinnest width, at run time).
+fn check_gap(
+    gap: f64,
+    grains: &GrainSizes,
+    c: &ContractionParams,
+    cell_min: Option<f64>,
+    layer: Option<(f64, bool)>,
+) -> Result<(), StageError> {
+    let key = "min_gap";
+    if let Some(l) = cell_min {
+        if gap >= 0.5 * l {
+            return Err(StageError::param(
+                key,
+                format!(
+                    "{} is at least half the cell width ({}): each grain would have to keep it from its own periodic images. A gap is a small clearance (Remark 5: typically the voxel size, e.g. `8 um`; a bare number is metres)",
+                    fmt_len(gap),
+                    fmt_len(l)
+                ),
+            ));
+        }
+    }
+    if let Some((t, _)) = layer {
+        if gap >= 0.5 * t {
+            return Err(StageError::param(
+                key,
+                format!(
+                    "{} is at least half the layer thickness ({}): a gap is a small clearance (Remark 5: typically the voxel size, e.g. `8 um`; a bare number is metres)",
+                    fmt_len(gap),
+                    fmt_len(t)
+                ),
+            ));
+        }
+    }
+    let vf = c.volume_fraction;
+    // Padded fraction from the volume-equivalent diameters (spheres: the law itself).
+    let (padded, d, limit, what) = match (&grains.diameter, grains.volume_range) {
+        (Some(_), Some(_)) => {
+            let n = 1024;
+            let (mut v, mut vp) = (0.0, 0.0);
+            for i in 0..n {
+                let r = c.radius.quantile((i as f64 + 0.5) / n as f64);
+                v += r.powi(3);
+                vp += (r + 0.5 * gap).powi(3);
+            }
+            (
+                vf * vp / v,
+                2.0 * c.radius.mean(),
+                KEPLER,
+                "Kepler's bound 0.7405 for spheres",
+            )
+        }
+        (Some(d), None) => (vf * (1.0 + gap / d).powi(3), *d, 1.0, "the whole cell"),
+        _ => (vf, 0.0, f64::INFINITY, ""),
+    };
+    if padded > limit {
+        let fits = d * ((limit / vf).cbrt() - 1.0);
+        return Err(StageError::param(
+            key,
+            format!(
+                "{} cannot fit grains of mean diameter {} at volume_fraction {vf}: grains kept min_gap apart fill at least {padded:.3} of the volume, more than {what}. Use min_gap below {} or lower volume_fraction",
+                fmt_len(gap),
+                fmt_len(d),
+                fmt_len(fits)
+            ),
+        ));
+    }
+    if let (Some((t, true)), Some(d)) = (layer, grains.diameter) {
+        if d + gap > t {
+            return Err(StageError::param(
+                "layer_thickness",
+                format!(
+                    "grains of mean diameter {} plus min_gap {} exceed the layer thickness {}: with periodic_z a grain would touch its own image one layer above. Raise layer_thickness above {}, lower min_gap, or use periodic_z: false",
+                    fmt_len(d),
+                    fmt_len(gap),
+                    fmt_len(t),
+                    fmt_len(d + gap)
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A length for messages, in um below 1 cm, else in m.
+fn fmt_len(x: f64) -> String {
+    if x.abs() < 1e-2 {
+        format!("{:.2} um", x * 1e6)
+    } else {
+        format!("{x} m")
+    }
+}
+
+/// Peak memory of a run with `bodies` grains: per grain its state, neighbour list and the
+/// sphere-pair Verlet list (Remark 3; about 30 listed sphere pairs per sphere of a 150-200
+/// sphere clump, one pair per neighbour for spheres), plus the shared structures. The
+/// neighbour search visits at most 5^3 cells per grain: the gap checks above bound the
+/// cut-off by the cell.
+fn memory_estimate(bodies: u64, clumps: bool) -> u64 {
+    let spheres_per_grain: u64 = if clumps { 256 } else { 1 };
+    let per_grain = 1024 + spheres_per_grain * (64 + 30 * 8);
+    (1 << 20) + bodies.saturating_mul(per_grain)
 }
 
 fn mean_bound(shapes: &[Shape]) -> f64 {
@@ -554,7 +735,7 @@ impl TypedStage for Classic {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "mcm.classic",
-            "2.0.0",
+            "2.1.0",
             "Mechanical contraction method: grains placed in a cell enlarged by beta, isotropic contraction steps each followed by overlap removal (FIRE or the paper's gradient descent over centroids and orientations), jams shaken loose, periodic in x, y, z",
         )
         .inputs(vec![library_port("clumps to pack (drawn by scrambled Sobol sampling on bounding diameter); spheres from `radius` if absent")])
@@ -582,6 +763,14 @@ impl TypedStage for Classic {
         }
         let grains = GrainSizes::of(c, inputs);
         let size = sized.then(|| p.size.map(|l| l.si()));
+        // The cell, or its estimate from `count` grains of the mean volume at eta.
+        let cell_min = match size {
+            Some(cell) => Some(cell.iter().cloned().fold(f64::INFINITY, f64::min)),
+            None => grains
+                .volume
+                .map(|v| (p.count as f64 * v / c.volume_fraction).cbrt()),
+        };
+        check_gap(p.min_gap.si(), &grains, c, cell_min, None)?;
         let mut packing = ArtifactMeta::of(ArtifactKind::Packing);
         packing.periodic = Some([true; 3]);
         if let Some(cell) = size {
@@ -607,7 +796,7 @@ impl TypedStage for Classic {
         };
         Ok(announce(
             &self.info(),
-            (p.count as u64 + 1) * 4096,
+            memory_estimate(p.count as u64, inputs.contains_key("library")),
             grains.with_scale(packing),
             1,
             c,
@@ -648,8 +837,9 @@ impl TypedStage for Classic {
         let shapes: Vec<Shape> = picks.iter().map(|x| src.shape(x, scale)).collect();
         let bmean = mean_bound(&shapes);
         check_fits(
-            "size",
+            if plan.size.is_some() { "size" } else { "count" },
             cell.iter().cloned().fold(f64::INFINITY, f64::min),
+            p.min_gap.si(),
             &shapes,
         )?;
         let tol = c.tolerance * bmean;
@@ -668,15 +858,14 @@ impl TypedStage for Classic {
         sys.margin = tol;
         sys.relaxation = c.relaxation();
         let mode = Mode::Isotropic { final_cell: cell };
-        let place_all = |sys: &mut System, rng: &mut ChaCha8Rng| {
+        let place_afresh = |sys: &mut System, rng: &mut ChaCha8Rng| {
             sys.cell = big;
-            for i in 0..sys.grains.len() {
-                place(sys, i, rng, PLACE_ATTEMPTS, |r| {
-                    v3([0, 1, 2].map(|a| uniform(r, 0.0, big[a])))
-                });
-            }
+            let n = sys.grains.len();
+            place_all(sys, 0..n, rng, |r| {
+                v3([0, 1, 2].map(|a| uniform(r, 0.0, big[a])))
+            });
         };
-        place_all(&mut sys, &mut rng);
+        place_afresh(&mut sys, &mut rng);
         let (st, tries) = contract_with_restarts(
             &mut sys,
             &mode,
@@ -687,7 +876,7 @@ impl TypedStage for Classic {
             ctx,
             "mcm.classic",
             |f| ctx.progress((f * 1000.0) as u64, 1000),
-            place_all,
+            place_afresh,
         )
         .map_err(|(tries, f)| run_failed("mcm.classic", 0, 1, tries, *f))?;
         let tagged: Vec<(Pick, f64, u32)> = picks.iter().map(|x| (*x, scale, 0)).collect();
@@ -713,7 +902,7 @@ impl TypedStage for Stacked {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "mcm.stacked",
-            "2.0.0",
+            "2.1.0",
             "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen, soft box on the centroids, each layer filled to eta exactly, jams shaken loose",
         )
         .inputs(vec![library_port("clumps to pack (scrambled Sobol sampling on bounding diameter, Remark 2); spheres from `radius` if absent")])
@@ -744,6 +933,13 @@ impl TypedStage for Stacked {
         }
         let (lx, ly) = (p.layer_size[0].si(), p.layer_size[1].si());
         let grains = GrainSizes::of(c, inputs);
+        check_gap(
+            p.min_gap.si(),
+            &grains,
+            c,
+            Some(lx.min(ly)),
+            Some((t, p.periodic_z)),
+        )?;
         let layers = p.layers as u64;
         // Remark 1: each layer is filled to eta Lx Ly T.
         let target = c.volume_fraction * lx * ly * t;
@@ -760,7 +956,10 @@ impl TypedStage for Stacked {
         );
         Ok(announce(
             &self.info(),
-            64 << 20,
+            memory_estimate(
+                layers * grains.estimate(target).max(1),
+                inputs.contains_key("library"),
+            ),
             grains.with_scale(packing),
             layers,
             c,
@@ -819,6 +1018,11 @@ impl TypedStage for Stacked {
                     uniform(r, z0, z0 + p.beta * t),
                 ])
             };
+            let layer_shapes: Vec<Shape> = picks.iter().map(|pk| src.shape(pk, s)).collect();
+            check_fits("layer_size", lx.min(ly), p.min_gap.si(), &layer_shapes)?;
+            if p.periodic_z {
+                check_thickness(t, p.min_gap.si(), &layer_shapes)?;
+            }
             for pk in &picks {
                 sys.shapes.push(src.shape(pk, s));
                 sys.grains.push(Grain {
@@ -828,11 +1032,10 @@ impl TypedStage for Stacked {
                     frozen: false,
                     zbox: None,
                 });
-                let i = sys.grains.len() - 1;
-                place(&mut sys, i, &mut rng, PLACE_ATTEMPTS, in_layer);
                 tagged.push((*pk, s, layer as u32));
             }
-            check_fits("layer_size", lx.min(ly), &sys.shapes)?;
+            let n = sys.grains.len();
+            place_all(&mut sys, first..n, &mut rng, in_layer);
             let mode = Mode::Stacked {
                 first,
                 z0,
@@ -853,9 +1056,8 @@ impl TypedStage for Stacked {
                 |f| ctx.progress(((layer as f64 + f) / nl * 1000.0) as u64, 1000),
                 |sys, rng| {
                     sys.cell[2] = crate::pack::stacked_cell_z(z0 + p.beta * t, t, p.periodic_z);
-                    for i in first..sys.grains.len() {
-                        place(sys, i, rng, PLACE_ATTEMPTS, in_layer);
-                    }
+                    let n = sys.grains.len();
+                    place_all(sys, first..n, rng, in_layer);
                 },
             )
             .map_err(|(tries, f)| run_failed("mcm.stacked", layer, p.layers, tries, *f))?;

@@ -173,3 +173,53 @@ fn convergence_history_ends_converged_at_the_final_size() {
     };
     assert_eq!(it.iter().sum::<i64>(), total[0]);
 }
+
+/// Issue 17: `min_gap: 8` (a bare number is metres) was accepted and hung; `min_gap: 1 m`
+/// exhausted memory (the neighbour search walked (2 cut / cell + 1)^3 periodic images).
+/// Both must be refused at preflight, naming the key and saying what would fit.
+#[test]
+fn absurd_gaps_are_refused_at_preflight_with_what_fits() {
+    for gap in [8.0, 1.0, 1e-3] {
+        let t0 = std::time::Instant::now();
+        let e = run(&Classic, json!({"count": 200, "min_gap": gap}), None, 1)
+            .err()
+            .unwrap_or_else(|| panic!("min_gap {gap} m accepted"));
+        assert!(t0.elapsed().as_secs_f64() < 2.0, "refused too slowly");
+        let grainpipe_core::StageError::InvalidParam { key, message } = &e else {
+            panic!("expected InvalidParam, got {e}")
+        };
+        assert_eq!(key, "min_gap");
+        assert!(
+            message.contains("half the cell") || message.contains("Use min_gap below"),
+            "{message}"
+        );
+    }
+    // 200 spheres of radius 70 um at 50 %: 20 um padded = 0.5 (1 + 20/140)^3 = 0.75 > 0.7405:
+    // refused; the largest gap that fits is 140 ((0.7405 / 0.5)^(1/3) - 1) um = 19.58 um, which the
+    // message gives.
+    let e = run(&Classic, json!({"count": 200, "min_gap": 20e-6}), None, 1).unwrap_err();
+    assert!(e.to_string().contains("19.58 um"), "{e}");
+    // 15 um fits (0.5 (1 + 15/140)^3 = 0.68): preflight passes.
+    let p: grainpipe_mcm::stages::ClassicParams =
+        serde_json::from_value(json!({"count": 200, "min_gap": 15e-6})).unwrap();
+    grainpipe_core::TypedStage::preflight(&Classic, &p, &grainpipe_core::InputMetas::new())
+        .unwrap();
+}
+
+/// The preflight memory estimate grows with the grains it will hold.
+#[test]
+fn memory_estimate_scales_with_the_grains() {
+    let mem = |count: usize| {
+        let p: grainpipe_mcm::stages::ClassicParams =
+            serde_json::from_value(json!({"count": count})).unwrap();
+        grainpipe_core::TypedStage::preflight(&Classic, &p, &grainpipe_core::InputMetas::new())
+            .unwrap()
+            .memory_bytes
+    };
+    assert!(
+        mem(100_000) > 50 * mem(1000) / 2,
+        "{} vs {}",
+        mem(100_000),
+        mem(1000)
+    );
+}

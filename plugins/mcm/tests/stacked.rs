@@ -141,3 +141,66 @@ fn free_surface_layers_with_the_papers_gap_pack_without_overlap() {
     let v = 0.5 * 560e-6 * 560e-6 * 2.0 * t;
     assert!((p.solid_volume() / v - 1.0).abs() < 1e-9);
 }
+
+/// Issue 20: `min_gap: 300 um` (more than half the 560 um cell) was accepted at preflight and
+/// failed after 8-15 minutes.
+#[test]
+fn a_gap_larger_than_half_the_cell_is_refused_at_preflight() {
+    for (gap, key) in [(300e-6, "min_gap"), (8.0, "min_gap"), (150e-6, "min_gap")] {
+        let t0 = std::time::Instant::now();
+        match run(&Stacked, json!({"min_gap": gap}), None, 1) {
+            Err(grainpipe_core::StageError::InvalidParam { key: k, message }) => {
+                assert_eq!(k, key, "{message}");
+                assert!(message.contains("um"), "{message}");
+            }
+            other => panic!(
+                "min_gap {gap}: expected InvalidParam, got {:?}",
+                other.map(|_| ())
+            ),
+        }
+        assert!(t0.elapsed().as_secs_f64() < 2.0);
+    }
+}
+
+/// Issue 20: `layer_thickness: 100 um` with grains wider than the layer failed after 76 s
+/// naming "grains 5 and 5" (a grain touching its own z image). Spheres from `radius` are
+/// refused at preflight; clumps (sizes known only when drawn) before anything is placed,
+/// naming the grain's thinnest width and what to change.
+#[test]
+fn grains_thicker_than_a_periodic_layer_are_refused_fast() {
+    let e = run(
+        &Stacked,
+        json!({"layer_thickness": "100 um", "radius": {"kind": "fixed", "value": "70 um"}}),
+        None,
+        1,
+    )
+    .unwrap_err();
+    let grainpipe_core::StageError::InvalidParam { key, message } = &e else {
+        panic!("{e}")
+    };
+    assert_eq!(key, "layer_thickness", "{message}");
+    // Rods of radius 40-50 um (thinnest width 80-100 um) in 90 um layers with a 2 um gap: the
+    // 45 and 50 um rods cannot lie flat in the layer.
+    let t0 = std::time::Instant::now();
+    let e = run(
+        &Stacked,
+        json!({"layer_thickness": "90 um", "layer_size": ["600 um", "600 um"], "min_gap": "2 um"}),
+        Some(&rods()),
+        1,
+    )
+    .unwrap_err();
+    assert!(t0.elapsed().as_secs_f64() < 2.0);
+    let grainpipe_core::StageError::InvalidParam { key, message } = &e else {
+        panic!("{e}")
+    };
+    assert_eq!(key, "layer_thickness");
+    // The 50 um rod is 100 um thick at its thinnest (within the sampling slack).
+    assert!(message.contains("thick at its thinnest"), "{message}");
+    // The same rods in a free-surface layer are not concerned.
+    let p: grainpipe_mcm::stages::StackedParams = serde_json::from_value(
+        json!({"layer_thickness": "90 um", "layer_size": ["600 um", "600 um"], "min_gap": "2 um", "periodic_z": false, "layers": 1, "volume_fraction": 0.3}),
+    )
+    .unwrap();
+    grainpipe_core::TypedStage::preflight(&Stacked, &p, &grainpipe_core::InputMetas::new())
+        .unwrap();
+}

@@ -9,7 +9,7 @@ pub mod thermal;
 
 pub use params::LaserParams;
 pub use png::BondGraphPng;
-pub use stage::{simulate, LaserSintering, RunResult};
+pub use stage::{simulate, validity_warning, LaserSintering, RunResult};
 
 pub fn register(r: &mut grainpipe_core::Registry) {
     r.add_stage(LaserSintering);

@@ -63,6 +63,10 @@ pub struct LaserParams {
     /// total laser power Q (paper: 100 W)
     #[param(default = Q::new(100.0))]
     pub power: Q<Power>,
+    /// fraction of the beam power the particles absorb (paper: 1, all of Q; 316L powder beds under a 1 um fibre laser absorb about 0.3-0.7)
+    // Default 1 keeps the paper's model literal; shipped pipelines state a physical value.
+    #[param(default = 1.0, ty = "number in [0, 1]")]
+    pub absorptivity: f64,
     /// laser beam radius r_L (paper: 50 um)
     #[param(default = Q::new(50e-6))]
     pub beam_radius: Q<Length>,
@@ -141,6 +145,11 @@ pub struct LaserParams {
     // 316L stainless steel: liquidus about 1700 K, latent heat about 2.7e5 J/kg.
     #[param(default = Q::new(1700.0))]
     pub melting_temperature: Q<Temperature>,
+    /// temperature above which the model leaves its range of validity (no evaporation, recoil or melt flow): a peak above it is reported as a warning (316L boils near 3090 K)
+    #[param(default = Q::new(3090.0))]
+    pub boiling_temperature: Q<Temperature>,
+    /// true: a peak above boiling_temperature fails the step instead of warning
+    pub refuse_invalid: bool,
     /// latent heat of melting for melting: true
     #[param(default = Q::new(2.7e5))]
     pub latent_heat: Q<SpecificEnergy>,

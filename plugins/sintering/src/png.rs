@@ -132,15 +132,36 @@ impl Exporter for BondGraphPng {
         &self,
         artifact: &Artifact,
         path: &Path,
-        _provenance: &Provenance,
+        provenance: &Provenance,
     ) -> Result<(), String> {
         let g = artifact
             .as_contact_graph()
             .ok_or_else(|| format!("png exports a ContactGraph, got a {}", artifact.kind()))?;
         let (w, h, buf) = render(g)?;
-        let img = image::RgbImage::from_raw(w, h, buf).ok_or("image buffer size mismatch")?;
-        atomic_write(path, |tmp| {
-            img.save_with_format(tmp, image::ImageFormat::Png)
+        if buf.len() != (w as usize) * (h as usize) * 3 {
+            return Err("image buffer size mismatch".into());
+        }
+        atomic_write(path, |tmp| -> Result<(), String> {
+            let file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
+            let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w, h);
+            enc.set_color(png::ColorType::Rgb);
+            enc.set_depth(png::BitDepth::Eight);
+            // Provenance as text chunks, as every exported file carries it: iTXt, since
+            // values (the pipeline YAML, paths) may hold characters outside Latin-1.
+            for (k, v) in &provenance.entries {
+                let keyword: String = k
+                    .chars()
+                    .filter(|c| c.is_ascii_graphic())
+                    .take(79)
+                    .collect();
+                if !keyword.is_empty() {
+                    enc.add_itxt_chunk(keyword, v.clone())
+                        .map_err(|e| e.to_string())?;
+                }
+            }
+            let mut writer = enc.write_header().map_err(|e| e.to_string())?;
+            writer.write_image_data(&buf).map_err(|e| e.to_string())?;
+            writer.finish().map_err(|e| e.to_string())
         })
     }
 }

@@ -54,6 +54,19 @@ fn non_negative(v: f64, key: &str, what: &str) -> Result<(), StageError> {
 /// path file: the one file the stage reads, read here once and handed to the run.
 pub fn validate(p: &LaserParams) -> Result<Option<LaserPath>, StageError> {
     non_negative(p.power.si(), "power", "power in W")?;
+    check(
+        (0.0..=1.0).contains(&p.absorptivity),
+        "absorptivity",
+        format!(
+            "must be a fraction in [0, 1], got {} (1 = the paper's literal model)",
+            p.absorptivity
+        ),
+    )?;
+    positive(
+        p.boiling_temperature.si(),
+        "boiling_temperature",
+        "absolute temperature",
+    )?;
     positive(p.beam_radius.si(), "beam_radius", "length")?;
     positive(p.specific_heat.si(), "specific_heat", "specific heat")?;
     positive(p.density.si(), "density", "density")?;
@@ -352,7 +365,8 @@ fn simulate_in_pool(
             .then(|| (p.melting_temperature.si(), p.latent_heat.si())),
     };
     let beam = Beam {
-        power: p.power.si(),
+        // Only the absorbed part of the beam heats the bed.
+        power: p.absorptivity * p.power.si(),
         radius: p.beam_radius.si(),
         profile: p.beam_profile,
     };
@@ -443,6 +457,21 @@ fn simulate_in_pool(
             .filter(|pl| !pl.stiff.is_empty() && 2 * pl.stiff.len() <= n);
         if let Some(pl) = mr {
             let stiff = pl.stiff.len();
+            // max_steps bounds the real work, counted in whole-bed steps: a sub-cycle of the
+            // `stiff` particles costs 2 stiff / n of one (sequential, as the plan counts
+            // it), and a global step whose sub-cycles would pass the limit is not started.
+            let planned = (h / (p.dt_safety * pl.stiff_limit)).ceil().max(1.0);
+            let work =
+                |cycles: f64| ((cycles - 1.0).max(0.0) * 2.0 * stiff as f64 / n as f64).ceil();
+            if s.steps as f64 + 1.0 + work(planned) > s.max_steps as f64 {
+                return Err(StageError::failed(format!(
+                    "reached max_steps = {} at t = {:.6e} s of {:.6e} s: the next step of \
+                     {h:.3e} s would sub-cycle {stiff} stiff particles {planned} times (their \
+                     stability limit is {:.3e} s); raise max_steps, lower bonded_conductance \
+                     or contact_conductance, or use integrator: implicit",
+                    s.max_steps, s.t, t_end, pl.stiff_limit
+                )));
+            }
             let mut ns = 0;
             let st = s.advance(h, |bed, q| {
                 let (st, k) = bed.explicit_step_multirate(h, q, pl, p.dt_safety);
@@ -451,6 +480,8 @@ fn simulate_in_pool(
             })?;
             s.last.substeps = ns;
             s.last.stiff = stiff;
+            // `advance` counted the global step; the further sub-cycles are work too.
+            s.steps = s.steps.saturating_add(work(ns as f64) as u64);
             s.bond(&mut plan);
             s.check(&st, Scheme::Multirate)?;
         } else if explicit {
@@ -575,16 +606,22 @@ fn simulate_in_pool(
             .collect(),
         positions: bed.pos.clone(),
     };
+    let peak = bed.peak.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     ctx.info(&format!(
         "sintering.laser: {n} particles, {} absorbers, {steps} steps to t = {t:.4e} s, {} of \
-         {} contacts bonded, peak {:.1} K, energy residual {:.2e} J of {:.3e} J laser input",
+         {} contacts bonded, peak {peak:.4e} K, energy residual {:.2e} J of {:.3e} J laser input",
         absorbers.len(),
         graph.bonds.len(),
         bed.pairs.len(),
-        bed.peak.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
         laser_in - bed.stored() - convected,
         laser_in
     ));
+    if let Some(m) = validity_warning(p, peak, &bed.peak) {
+        if p.refuse_invalid {
+            return Err(StageError::failed(m));
+        }
+        ctx.warn(&m);
+    }
     Ok(RunResult {
         bonds: graph,
         packing: out,
@@ -593,6 +630,28 @@ fn simulate_in_pool(
         steps,
         absorbers,
     })
+}
+
+/// The warning for a result outside the model's range of validity: a peak temperature above
+/// `boiling_temperature`, where the real powder evaporates and the model (conduction between
+/// rigid spheres, convection, optional latent heat of melting) no longer describes it.
+pub fn validity_warning(p: &LaserParams, peak: f64, peaks: &[f64]) -> Option<String> {
+    let boil = p.boiling_temperature.si();
+    if peak.is_finite() && peak <= boil {
+        return None;
+    }
+    let above = peaks.iter().filter(|&&t| t.is_nan() || t > boil).count();
+    Some(format!(
+        "RESULT OUTSIDE THE MODEL'S RANGE OF VALIDITY: peak temperature {peak:.4e} K exceeds \
+         boiling_temperature = {boil} K in {above} of {} particles (the model has no \
+         evaporation or melt flow, so these temperatures are not physical). Lower power \
+         ({} W) or absorptivity ({}), or raise scan_speed ({} m/s) or beam_radius; \
+         refuse_invalid: true makes this an error",
+        peaks.len(),
+        p.power.si(),
+        p.absorptivity,
+        p.scan_speed.si()
+    ))
 }
 
 /// How a step was integrated, for the messages of [`Stepper::check`].
@@ -935,21 +994,91 @@ impl TypedStage for LaserSintering {
             }
         }
         let n = inputs["packing"].count_estimate.max(1);
-        // The same sum as the run's end time (a raster's timing does not depend on its centre).
-        let duration = match &csv {
-            Some(path) => path.duration(),
-            None => raster(p, [0.0; 2]).duration(),
+        // The run's end time, without building a raster (a billion passes must be refused
+        // here, not allocated): each line takes raster_length / scan_speed.
+        let (duration, path_segments) = match &csv {
+            Some(path) => (path.duration(), path.segments.len() as u64),
+            None => (
+                f64::from(p.passes) * p.raster_length.si() / p.scan_speed.si(),
+                u64::from(p.passes),
+            ),
         };
         let t_end = duration + p.cooldown.si();
+        // A lower bound on the steps: no step is longer than the user's dt, or than the time
+        // the beam takes to move a fifth of its radius (explicit and implicit alike).
+        let dt_cap =
+            p.dt.map(|d| d.si())
+                .unwrap_or(p.beam_radius.si() / (5.0 * p.scan_speed.si()));
+        let min_steps = (t_end / dt_cap).ceil();
+        if min_steps > p.max_steps as f64 {
+            return Err(StageError::param(
+                if p.dt.is_some() { "dt" } else { "passes" },
+                format!(
+                    "the run needs at least {min_steps:.3e} time steps ({t_end:.3e} s of path \
+                     and cooldown at steps of at most {dt_cap:.3e} s), above max_steps = {}; \
+                     shorten the path (passes, raster_length) or the cooldown, or raise max_steps",
+                    p.max_steps
+                ),
+            ));
+        }
         let frames = frame_bounds(t_end, p.snapshot_interval.si());
+        // One history row per interval, or per global step when the interval is 0; never
+        // more than one per step, and the steps are bounded by max_steps.
+        let step_bound = p.max_steps.saturating_add(2);
         let rows = if p.history_interval.si() > 0.0 {
-            (t_end / p.history_interval.si()).ceil() as u64 + 2
+            ((t_end / p.history_interval.si()).ceil() as u64)
+                .saturating_add(2)
+                .min(step_bound)
         } else {
-            0
+            match p.dt {
+                Some(_) => (min_steps as u64).saturating_add(2).min(step_bound),
+                None => step_bound,
+            }
         };
         // Per particle: ~16 f64 of state and scratch, ~8 contacts x 24 bytes, and one
-        // packing clone (~100 bytes per body) per snapshot frame.
-        let memory = n * (16 * 8 + 8 * 24) + frames[1] * n * 112;
+        // packing clone (~100 bytes per body) per snapshot frame; per history row 16 columns
+        // of 8 bytes; per path segment its 48 bytes.
+        let memory = n
+            .saturating_mul(16 * 8 + 8 * 24)
+            .saturating_add(frames[1].saturating_mul(n).saturating_mul(112))
+            .saturating_add(rows.saturating_mul(16 * 8))
+            .saturating_add(path_segments.saturating_mul(48));
+        if let Some(avail) = grainpipe_core::engine::available_memory() {
+            if memory > avail {
+                let (key, what) = if rows.saturating_mul(128) > avail / 2 {
+                    (
+                        "history_interval",
+                        format!(
+                            "{rows} history rows; a history_interval of at least {:.3e} s fits",
+                            t_end * 256.0 / avail as f64
+                        ),
+                    )
+                } else if path_segments.saturating_mul(48) > avail / 2 {
+                    (
+                        "passes",
+                        format!("{path_segments} path segments; at most {} fit", avail / 96),
+                    )
+                } else {
+                    (
+                        "snapshot_interval",
+                        format!(
+                            "{} snapshot frames of {n} particles; a snapshot_interval of at \
+                             least {:.3e} s fits",
+                            frames[1],
+                            t_end * (n as f64 * 224.0) / avail as f64
+                        ),
+                    )
+                };
+                return Err(StageError::param(
+                    key,
+                    format!(
+                        "the run would need about {} MiB but {} MiB are available: {what}",
+                        memory >> 20,
+                        avail >> 20
+                    ),
+                ));
+            }
+        }
         Ok(Preflight::from_info(&self.info(), memory)
             .announce("bonds", inputs["contacts"].clone())
             .announce("packing", inputs["packing"].clone())

@@ -47,3 +47,39 @@ fn top_view_png_shows_bonds_and_particles() {
         .write(&t, &dir.path().join("x.png"), &Provenance::default())
         .is_err());
 }
+
+#[test]
+fn png_carries_the_provenance_as_text_chunks() {
+    // Issue 17: every exported file carries its provenance; PNG in iTXt chunks.
+    let g = ContactGraph {
+        contacts: vec![Contact {
+            i: 0,
+            j: 1,
+            gap: 0.0,
+        }],
+        positions: vec![[0.0; 3], [1e-4, 0.0, 0.0]],
+        ..Default::default()
+    };
+    let mut prov = Provenance::default();
+    prov.entries.insert("seed".into(), "42".into());
+    prov.entries
+        .insert("pipeline_yaml".into(), "name: µ-bed\nseed: 42\n".into());
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("b.png");
+    BondGraphPng
+        .write(&Artifact::ContactGraph(g), &path, &prov)
+        .unwrap();
+    let dec = png::Decoder::new(std::fs::File::open(&path).unwrap());
+    let reader = dec.read_info().unwrap();
+    let text: Vec<(String, String)> = reader
+        .info()
+        .utf8_text
+        .iter()
+        .map(|t| (t.keyword.clone(), t.get_text().unwrap()))
+        .collect();
+    assert!(text.contains(&("seed".into(), "42".into())), "{text:?}");
+    assert!(
+        text.contains(&("pipeline_yaml".into(), "name: µ-bed\nseed: 42\n".into())),
+        "{text:?}"
+    );
+}

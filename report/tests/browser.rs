@@ -1,0 +1,468 @@
+//! Opens reports in a real headless browser (Debian's `chromium`): a run report built from
+//! small synthetic artifacts, a sweep report and an `html` export. Each page must load with
+//! every expected section present, every image decoded (the page's script sets
+//! `data-images-ok` on <html>) and a screenshot written. Skipped, loudly, only when no
+//! chromium is installed (`apt-get install chromium`).
+
+use grainpipe_core::model::*;
+use grainpipe_report::data::{self, ReportData};
+use grainpipe_report::numbers;
+use grainpipe_report::record::{self, RunRecord, StepProvenance, StepRecord};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn chromium() -> Option<PathBuf> {
+    for name in ["chromium", "chromium-browser", "google-chrome"] {
+        for dir in std::env::var_os("PATH")
+            .map(|p| std::env::split_paths(&p).collect::<Vec<_>>())
+            .unwrap_or_default()
+        {
+            let p = dir.join(name);
+            if p.is_file() {
+                return Some(p);
+            }
+        }
+    }
+    None
+}
+
+/// Runs chromium headless on `page`; returns the DOM after load and writes `shot`.
+fn browse(page: &Path, shot: &Path, profile: &Path) -> String {
+    let exe = chromium().expect("checked");
+    let url = format!("file://{}", page.canonicalize().unwrap().display());
+    let common = [
+        "--headless",
+        "--disable-gpu",
+        "--no-sandbox",
+        "--no-first-run",
+        "--disable-extensions",
+        "--hide-scrollbars",
+        "--virtual-time-budget=5000",
+    ];
+    let user = format!("--user-data-dir={}", profile.display());
+    let out = Command::new(&exe)
+        .args(common)
+        .arg(&user)
+        .arg("--dump-dom")
+        .arg(&url)
+        .env("HOME", profile)
+        .output()
+        .expect("chromium runs");
+    assert!(
+        out.status.success(),
+        "chromium --dump-dom failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let dom = String::from_utf8_lossy(&out.stdout).into_owned();
+    let out = Command::new(&exe)
+        .args(common)
+        .arg(&user)
+        .arg(format!("--screenshot={}", shot.display()))
+        .arg("--window-size=1200,3000")
+        .arg(&url)
+        .env("HOME", profile)
+        .output()
+        .expect("chromium runs");
+    assert!(
+        out.status.success(),
+        "chromium --screenshot failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    dom
+}
+
+fn skip() -> bool {
+    if chromium().is_none() {
+        eprintln!(
+            "\n\n*** SKIPPED: no chromium on PATH; the report was not checked in a browser. \
+             Install it: apt-get install -y chromium ***\n\n"
+        );
+        return true;
+    }
+    false
+}
+
+/// The screenshot is a real, non-blank PNG of the requested width.
+fn check_screenshot(shot: &Path) {
+    let bytes = std::fs::read(shot).expect("screenshot written");
+    let dec = png::Decoder::new(std::io::Cursor::new(bytes));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size()];
+    let info = r.next_frame(&mut buf).unwrap();
+    assert_eq!(info.width, 1200);
+    let px = &buf[..info.buffer_size()];
+    let first = &px[..3];
+    let distinct = px
+        .chunks(info.color_type.samples())
+        .filter(|p| &p[..3] != first)
+        .count();
+    assert!(distinct > 1000, "screenshot is blank");
+}
+
+fn grid(n: usize, h: f64) -> Grid {
+    Grid {
+        dims: [n, n, n],
+        spacing: [h; 3],
+        origin: [0.0; 3],
+        periodic: [true; 3],
+    }
+}
+
+/// A sphere of sand with a binder shell in a periodic cube, its velocity, a stress pair,
+/// the packing, an isotropic stiffness with its constants, a permeability.
+fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
+    let n = 24;
+    let h = 8e-6;
+    let g = grid(n, h);
+    let mut labels = vec![0u8; n * n * n];
+    let c = n as f64 / 2.0;
+    for z in 0..n {
+        for y in 0..n {
+            for x in 0..n {
+                let r = ((x as f64 + 0.5 - c).powi(2)
+                    + (y as f64 + 0.5 - c).powi(2)
+                    + (z as f64 + 0.5 - c).powi(2))
+                .sqrt();
+                labels[g.index(x, y, z)] = if r < 8.0 {
+                    1
+                } else if r < 9.5 {
+                    2
+                } else {
+                    0
+                };
+            }
+        }
+    }
+    let img = PhaseImage {
+        grid: g.clone(),
+        labels: labels.clone(),
+        phases: vec![
+            Phase {
+                id: 0,
+                name: "pore".into(),
+            },
+            Phase {
+                id: 1,
+                name: "sand".into(),
+            },
+            Phase {
+                id: 2,
+                name: "binder".into(),
+            },
+        ],
+    };
+    let vel: Vec<f64> = (0..n * n * n)
+        .flat_map(|i| {
+            let s = if labels[i] == 0 {
+                1e-3 * (i % 7) as f64
+            } else {
+                0.0
+            };
+            [s, 0.1 * s, 0.0]
+        })
+        .collect();
+    let velocity = Field::new(
+        g.clone(),
+        "velocity",
+        "m/s",
+        ComponentConvention::Vector,
+        FieldData::F64(vel),
+    )
+    .unwrap();
+    let stress = |scale: f32| {
+        let d: Vec<f32> = (0..n * n * n)
+            .flat_map(|i| {
+                let s = if labels[i] == 0 {
+                    0.0
+                } else {
+                    scale * (1.0 + (i % 5) as f32)
+                };
+                [s, 0.2 * s, 0.1 * s, 0.0, 0.0, 0.05 * s]
+            })
+            .collect();
+        Field::new(
+            g.clone(),
+            "stress",
+            "Pa",
+            ComponentConvention::Voigt,
+            FieldData::F32(d),
+        )
+        .unwrap()
+    };
+    let stresses = Collection {
+        items: vec![
+            ("xx".into(), Artifact::Field(stress(1e9))),
+            ("yy".into(), Artifact::Field(stress(2e9))),
+        ],
+    };
+    let mut packing = Packing::new(Domain::boxed([0.0; 3], [n as f64 * h; 3], [true; 3]));
+    for (k, p) in [
+        [0.3, 0.3, 0.3],
+        [0.7, 0.4, 0.6],
+        [0.5, 0.75, 0.5],
+        [0.2, 0.8, 0.8],
+    ]
+    .iter()
+    .enumerate()
+    {
+        packing.bodies.push(Body::sphere(
+            p.map(|v| v * n as f64 * h),
+            (20.0 + 10.0 * k as f64) * 1e-6,
+        ));
+    }
+    let (e, nu) = (4.8e9, 0.16);
+    let c6 = numbers::isotropic_stiffness(e, nu);
+    let stiffness = Tensor {
+        name: "stiffness".into(),
+        unit: "Pa".into(),
+        shape: vec![6, 6],
+        values: c6.concat(),
+        convention: TensorConvention::Voigt,
+    };
+    let k = numbers::engineering(&c6).unwrap();
+    let mut constants = Table::new("constants").with_str(
+        "approximation",
+        vec![
+            "apparent".into(),
+            "orthotropic".into(),
+            "transversely_isotropic_z".into(),
+            "isotropic".into(),
+        ],
+    );
+    for (j, name) in numbers::ENGINEERING_NAMES.iter().enumerate() {
+        constants = constants.with_f64(name, if j < 6 { "Pa" } else { "" }, vec![k[j]; 4]);
+    }
+    constants = constants.with_f64("relative_error", "", vec![0.0, 0.0476, 0.0666, 0.0948]);
+    let permeability = Tensor {
+        name: "permeability".into(),
+        unit: "m^2".into(),
+        shape: vec![3, 3],
+        values: vec![3.8e-11, 2e-13, 0.0, 2e-13, 3.9e-11, 0.0, 0.0, 0.0, 3.5e-11],
+        convention: TensorConvention::Plain,
+    };
+    let history = Table::new("history")
+        .with_i64("iteration", "", (0..100).collect())
+        .with_f64("residual", "", (0..100).map(|i| 0.5f64.powi(i)).collect());
+    let mut pics = vec![];
+    let items = vec![
+        data::item("pack.packing", &Artifact::Packing(packing), &mut pics),
+        data::item("binder.image", &Artifact::PhaseImage(img), &mut pics),
+        data::item(
+            "stiffness.stiffness",
+            &Artifact::Tensor(stiffness),
+            &mut pics,
+        ),
+        data::item(
+            "stiffness.constants",
+            &Artifact::Table(constants),
+            &mut pics,
+        ),
+        data::item(
+            "stiffness.stress",
+            &Artifact::Collection(stresses),
+            &mut pics,
+        ),
+        data::item("stiffness.history", &Artifact::Table(history), &mut pics),
+        data::item(
+            "flow.permeability",
+            &Artifact::Tensor(permeability),
+            &mut pics,
+        ),
+        data::item("flow.velocity", &Artifact::Field(velocity), &mut pics),
+    ];
+    let step = |s: &str, st: &str, w: f64| StepRecord {
+        step: s.into(),
+        stage: st.into(),
+        wall_s: w,
+        from_cache: s == "pack",
+        peak_bytes: Some(1 << 20),
+        peak_heap_bytes: Some(3 << 20),
+    };
+    let rec = RunRecord {
+        grainpipe_version: grainpipe_core::VERSION.into(),
+        pipeline_file: "pipelines/synthetic.yaml".into(),
+        pipeline_name: "synthetic <test>".into(),
+        description: "a synthetic run".into(),
+        seed: 42,
+        overrides: vec!["binder.binder_fraction=0.03".into()],
+        effective_yaml: "name: synthetic\n".into(),
+        source_yaml: "name: synthetic\n".into(),
+        started_unix_s: 1.8e9,
+        wall_s: 3.5,
+        status: "ok".into(),
+        error: None,
+        steps: vec![
+            step("pack", "mcm.stacked", 0.0),
+            step("binder", "binder.levelset", 1.0),
+            step("stiffness", "elasticity.fft", 2.0),
+            step("flow", "stokes.permeability", 0.5),
+        ],
+        exports: vec![],
+        provenance: vec![StepProvenance {
+            step: "pack".into(),
+            stage: "mcm.stacked".into(),
+            stage_version: "1.0.0".into(),
+            origin: "built-in".into(),
+            seed: 7,
+            cache_key: "abc".into(),
+            params: serde_json::json!({"layers": 2}),
+            inputs: vec![],
+            input_files: vec![],
+        }],
+        host: "test".into(),
+        threads: 2,
+    };
+    (rec, ReportData { items }, pics)
+}
+
+fn attr<'a>(dom: &'a str, name: &str) -> Option<&'a str> {
+    let start = dom.find(&format!("{name}=\""))? + name.len() + 2;
+    let end = dom[start..].find('"')? + start;
+    Some(&dom[start..end])
+}
+
+#[test]
+fn run_report_in_a_browser() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("run");
+    let (rec, data, pics) = synthetic();
+    record::write_run_files(&dir, &rec, &data, &pics).unwrap();
+    let page = grainpipe_report::render_dir(&dir, None).unwrap();
+    assert_eq!(page, dir.join("report.html"));
+    let html = std::fs::read_to_string(&page).unwrap();
+    // Self-contained: nothing fetched from elsewhere.
+    assert!(!html.contains("src=\"http") && !html.contains("href=\"http"));
+    // The numbers shown: the isotropic stiffness gives back E = 4.8 GPa and nu = 0.16, and
+    // the permeability's symmetry error is 0 (symmetric by construction).
+    assert!(
+        html.contains("E_x 4.8 GPa, E_y 4.8 GPa, E_z 4.8 GPa"),
+        "headline moduli"
+    );
+    assert!(
+        html.contains("E = 4.8 GPa, ν = 0.16"),
+        "Table 7 isotropy row"
+    );
+    assert!(html.contains("9.48 %"));
+    assert!(html.contains("<span class=\"symmetry-error\">0</span>"));
+    assert!(html.contains("100 rows; the first and last 20 shown"));
+    if skip() {
+        return;
+    }
+    let shot = tmp.path().join("run.png");
+    let dom = browse(&page, &shot, &tmp.path().join("profile"));
+    for id in [
+        "summary",
+        "microstructure",
+        "packing",
+        "fields",
+        "stiffness",
+        "permeability",
+        "tables",
+        "steps",
+        "exports",
+        "provenance",
+    ] {
+        assert!(
+            dom.contains(&format!("<section id=\"{id}\"")),
+            "section #{id} missing"
+        );
+    }
+    // 3 phase slices + 2 renderings + 3 velocity slices + 2 x 3 stress slices.
+    assert_eq!(attr(&dom, "data-images"), Some("14"), "image count");
+    assert_eq!(
+        attr(&dom, "data-images-ok"),
+        Some("true"),
+        "an image is broken"
+    );
+    assert!(dom.contains("von Mises equivalent of stress"));
+    assert!(
+        dom.contains("<svg class=\"chart\""),
+        "size distribution chart"
+    );
+    check_screenshot(&shot);
+}
+
+#[test]
+fn sweep_report_and_html_export_in_a_browser() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("sweep");
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut csv = String::from(
+        "run,point,realization,binder_fraction [1],E_x [Pa],kappa_zz [m^2],seed,wall_time [s],peak_memory [B],status,error\n",
+    );
+    for p in 0..2 {
+        for r in 0..8 {
+            let e = 4.5e9 + 0.4e9 * p as f64 + 1e8 * ((r * 37 % 11) as f64 - 5.0);
+            let _ = std::fmt::Write::write_fmt(
+                &mut csv,
+                format_args!(
+                    "p{p}-r{r},{p},{r},{},{e},{},{},1.5,1e8,ok,\n",
+                    0.02 + 0.02 * p as f64,
+                    3.5e-11 - 1e-12 * r as f64,
+                    1000 + r
+                ),
+            );
+        }
+    }
+    std::fs::write(dir.join("sweep.csv"), csv).unwrap();
+    std::fs::write(
+        dir.join("sweep.json"),
+        r#"{"pipeline_name":"sandcore","vary":[{"key":"binder_fraction","values":["0.02","0.04"]}]}"#,
+    )
+    .unwrap();
+    let page = grainpipe_report::render_dir(&dir, None).unwrap();
+    let html = std::fs::read_to_string(&page).unwrap();
+    // 2 points x 4 value columns (E_x, kappa_zz, wall_time, peak_memory; the constant ones
+    // get a violin without a density).
+    assert_eq!(html.matches("<svg class=\"violin\"").count(), 8);
+
+    // The html export of one artifact (a phase image with provenance).
+    let g = grid(10, 1e-5);
+    let img = PhaseImage {
+        grid: g.clone(),
+        labels: (0..1000).map(|i| (i % 3) as u8).collect(),
+        phases: vec![
+            Phase {
+                id: 0,
+                name: "pore".into(),
+            },
+            Phase {
+                id: 1,
+                name: "sand".into(),
+            },
+        ],
+    };
+    let mut prov = Provenance::default();
+    prov.entries.insert("step".into(), "binder.image".into());
+    prov.entries.insert("pipeline_name".into(), "t".into());
+    prov.entries
+        .insert("pipeline_yaml".into(), "name: t\n".into());
+    let exp = grainpipe_report::export::HtmlExporter;
+    let html_path = tmp.path().join("image.html");
+    grainpipe_core::Exporter::write(&exp, &Artifact::PhaseImage(img), &html_path, &prov).unwrap();
+    if skip() {
+        return;
+    }
+    let dom = browse(
+        &page,
+        &tmp.path().join("sweep.png"),
+        &tmp.path().join("profile"),
+    );
+    for id in ["summary", "violins", "intervals", "runs"] {
+        assert!(
+            dom.contains(&format!("<section id=\"{id}\"")),
+            "section #{id} missing"
+        );
+    }
+    assert!(dom.contains("binder_fraction = 0.02"));
+    check_screenshot(&tmp.path().join("sweep.png"));
+    let dom = browse(
+        &html_path,
+        &tmp.path().join("image.png"),
+        &tmp.path().join("profile"),
+    );
+    assert_eq!(attr(&dom, "data-images"), Some("3"));
+    assert_eq!(attr(&dom, "data-images-ok"), Some("true"));
+    assert!(dom.contains("<section id=\"provenance\""));
+    assert!(dom.contains("label 2"), "unnamed label listed");
+}

@@ -1,0 +1,385 @@
+//! Executing runs: [`run_one`] is what one child process (or one Slurm array task) does;
+//! [`run_local`] starts child processes, at most `jobs` at once and no more than the free
+//! memory allows by the preflight estimates, and records a result for every run, including
+//! runs whose process crashed.
+
+use crate::spec::{error_text, parse_collect, plan_run, run_doc, Manifest, PluginLoad, RunSpec};
+use grainpipe_core::engine::{self, RunOptions, SilentObserver};
+use grainpipe_core::{Artifact, ColumnData, Registry};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::{Condvar, Mutex};
+use std::time::Instant;
+
+/// A collected value of a run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Value {
+    pub name: String,
+    pub unit: String,
+    /// JSON has no NaN: a non-finite value is stored as null.
+    pub value: Option<f64>,
+}
+
+/// What a finished run left: `DIR/runs/<id>/result.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunResult {
+    pub id: String,
+    /// `ok` or `failed`.
+    pub status: String,
+    pub error: String,
+    pub seed: u64,
+    /// Wall time of the run [s].
+    pub wall_time: f64,
+    /// Peak resident memory of the run's process [bytes] (0 when unknown).
+    pub peak_memory: u64,
+    pub values: Vec<Value>,
+}
+
+pub fn run_dir(dir: &Path, id: &str) -> PathBuf {
+    dir.join("runs").join(id)
+}
+
+pub fn result_path(dir: &Path, id: &str) -> PathBuf {
+    run_dir(dir, id).join("result.json")
+}
+
+pub fn load_result(dir: &Path, id: &str) -> Option<RunResult> {
+    let text = std::fs::read_to_string(result_path(dir, id)).ok()?;
+    serde_json::from_str(&text).ok()
+}
+
+pub fn save_result(dir: &Path, r: &RunResult) -> Result<(), String> {
+    let text = serde_json::to_string_pretty(r).map_err(|e| e.to_string())?;
+    grainpipe_core::fsutil::atomic_write_bytes(&result_path(dir, &r.id), text.as_bytes())
+}
+
+/// Peak resident set size of this process (VmHWM of /proc/self/status) [bytes]; 0 elsewhere.
+pub fn peak_rss() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            let l = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+            l.split_whitespace().nth(1)?.parse::<u64>().ok()
+        })
+        .map_or(0, |kib| kib * 1024)
+}
+
+/// The values a `--collect` names in a run's outputs: every row of the column (or of every
+/// numeric column when none is named) of a table, or every component of a tensor. Names are
+/// `step.port.column`, with `[k]` appended when there are several rows.
+pub fn collect_values(
+    res: &engine::RunResult,
+    spec: &crate::spec::CollectSpec,
+) -> Result<Vec<Value>, String> {
+    let full = format!("{}.{}", spec.step, spec.port);
+    let a = res
+        .outputs
+        .get(&spec.step)
+        .and_then(|o| o.get(&spec.port))
+        .ok_or_else(|| format!("--collect `{full}`: the step gave no such output"))?;
+    let v = |name: String, unit: &str, x: f64| Value {
+        name,
+        unit: unit.to_string(),
+        value: x.is_finite().then_some(x),
+    };
+    match a {
+        Artifact::Table(t) => {
+            let cols: Vec<&grainpipe_core::Column> = match &spec.column {
+                Some(c) => vec![t.column(c).ok_or_else(|| {
+                    let names: Vec<&str> = t.columns.iter().map(|c| c.name.as_str()).collect();
+                    format!(
+                        "--collect `{full}.{c}`: no column `{c}`{}; it has: {}",
+                        grainpipe_core::registry::closest(c, names.iter().copied())
+                            .map(|s| format!(" (did you mean `{s}`?)"))
+                            .unwrap_or_default(),
+                        names.join(", ")
+                    )
+                })?],
+                None => t
+                    .columns
+                    .iter()
+                    .filter(|c| !matches!(c.data, ColumnData::Str(_)))
+                    .collect(),
+            };
+            let mut out = Vec::new();
+            for c in cols {
+                let xs: Vec<f64> = match &c.data {
+                    ColumnData::F64(x) => x.clone(),
+                    ColumnData::I64(x) => x.iter().map(|&i| i as f64).collect(),
+                    ColumnData::Str(_) => {
+                        return Err(format!(
+                            "--collect `{full}.{}`: the column holds text",
+                            c.name
+                        ))
+                    }
+                };
+                let name = format!("{full}.{}", c.name);
+                if xs.len() == 1 {
+                    out.push(v(name, &c.unit, xs[0]));
+                } else {
+                    for (k, x) in xs.iter().enumerate() {
+                        out.push(v(format!("{name}[{k}]"), &c.unit, *x));
+                    }
+                }
+            }
+            Ok(out)
+        }
+        Artifact::Tensor(t) => {
+            let idx: Option<usize> = match &spec.column {
+                Some(c) => Some(c.parse().map_err(|_| {
+                    format!(
+                        "--collect `{full}.{c}`: a tensor's values are chosen by index (0..{})",
+                        t.values.len()
+                    )
+                })?),
+                None => None,
+            };
+            Ok(t.values
+                .iter()
+                .enumerate()
+                .filter(|(k, _)| idx.is_none_or(|i| i == *k))
+                .map(|(k, x)| v(format!("{full}[{k}]"), &t.unit, *x))
+                .collect())
+        }
+        other => Err(format!(
+            "--collect `{full}`: a {} has no values to collect (collect a table or a tensor)",
+            other.kind()
+        )),
+    }
+}
+
+/// Runs one run of a sweep in this process and writes its `result.json` (also when it fails).
+/// Returns the result.
+pub fn run_one(
+    dir: &Path,
+    id: &str,
+    registry: &mut Registry,
+    load_plugins: &mut PluginLoad,
+) -> Result<RunResult, String> {
+    let start = Instant::now();
+    let m = Manifest::load(dir)?;
+    let run = m
+        .run(id)
+        .ok_or_else(|| format!("{}: no run `{id}`", Manifest::path(dir).display()))?
+        .clone();
+    let outcome = execute_run(&m, &run, dir, registry, load_plugins);
+    let (status, error, values) = match outcome {
+        Ok(v) => ("ok", String::new(), v),
+        Err(e) => ("failed", e, Vec::new()),
+    };
+    let r = RunResult {
+        id: id.to_string(),
+        status: status.into(),
+        error,
+        seed: run.seed,
+        wall_time: start.elapsed().as_secs_f64(),
+        peak_memory: peak_rss(),
+        values,
+    };
+    save_result(dir, &r)?;
+    Ok(r)
+}
+
+fn execute_run(
+    m: &Manifest,
+    run: &RunSpec,
+    dir: &Path,
+    registry: &mut Registry,
+    load_plugins: &mut PluginLoad,
+) -> Result<Vec<Value>, String> {
+    let now = grainpipe_core::fsutil::content_hash(&m.pipeline)
+        .map_err(|e| format!("{}: {e}", m.pipeline.display()))?;
+    if now != m.pipeline_blake3 {
+        return Err(format!(
+            "{} changed since the sweep was set up; its runs would mix two pipelines \
+             (start a new sweep with another --out)",
+            m.pipeline.display()
+        ));
+    }
+    let doc = run_doc(m, run, dir).map_err(|e| error_text(&e))?;
+    load_plugins(registry, &doc).map_err(|e| error_text(&e))?;
+    let collect = m
+        .collect
+        .iter()
+        .map(|c| parse_collect(c))
+        .collect::<Result<Vec<_>, _>>()?;
+    let plan = plan_run(&doc, registry, &collect, None).map_err(|e| error_text(&e))?;
+    let res = engine::execute(
+        &doc,
+        &plan,
+        &RunOptions {
+            cache_dir: m.cache_dir.clone(),
+        },
+        &mut SilentObserver,
+    )
+    .map_err(|e| error_text(&e))?;
+    let mut values = Vec::new();
+    for c in &collect {
+        values.extend(collect_values(&res, c)?);
+    }
+    Ok(values)
+}
+
+/// Builds the command that runs one run of the sweep in `dir` in a child process.
+pub type Launcher<'a> = dyn Fn(&Path, &str) -> Command + Sync + 'a;
+
+/// How the local executor runs.
+pub struct LocalOptions {
+    /// Runs at once at most.
+    pub jobs: usize,
+    /// Memory the runs may use together [bytes]; a run starts only when its preflight
+    /// estimate fits beside the running ones (one run always may start).
+    pub memory_budget: Option<u64>,
+    /// Stop starting runs after this many have started (tests simulate an interrupted sweep).
+    pub stop_after: Option<usize>,
+    pub quiet: bool,
+}
+
+struct Shared {
+    next: usize,
+    started: usize,
+    running_memory: u64,
+    running: usize,
+    done: usize,
+    failed: usize,
+}
+
+/// Runs `todo` (indices into the manifest's runs) as child processes; every run ends with a
+/// `result.json` (the child's, or one written here when the child died without one).
+/// Returns (finished, failed).
+pub fn run_local(
+    dir: &Path,
+    m: &Manifest,
+    todo: &[usize],
+    opts: &LocalOptions,
+    launch: &Launcher,
+) -> (usize, usize) {
+    let shared = Mutex::new(Shared {
+        next: 0,
+        started: 0,
+        running_memory: 0,
+        running: 0,
+        done: 0,
+        failed: 0,
+    });
+    let freed = Condvar::new();
+    let t0 = Instant::now();
+    let total = todo.len();
+    std::thread::scope(|scope| {
+        for _ in 0..opts.jobs.max(1).min(total.max(1)) {
+            scope.spawn(|| loop {
+                let run = {
+                    let mut s = shared.lock().expect("lock");
+                    if s.next >= total || opts.stop_after.is_some_and(|k| s.started >= k) {
+                        return;
+                    }
+                    let run = &m.runs[todo[s.next]];
+                    // Memory-aware: wait while this run's estimate does not fit beside the
+                    // running ones.
+                    while let Some(budget) = opts.memory_budget {
+                        if s.running == 0 || s.running_memory + run.memory_bytes <= budget {
+                            break;
+                        }
+                        s = freed.wait(s).expect("lock");
+                    }
+                    if s.next >= total || opts.stop_after.is_some_and(|k| s.started >= k) {
+                        return;
+                    }
+                    let run = &m.runs[todo[s.next]];
+                    s.next += 1;
+                    s.started += 1;
+                    s.running += 1;
+                    s.running_memory += run.memory_bytes;
+                    run
+                };
+                let r = run_child(dir, run, launch);
+                let mut s = shared.lock().expect("lock");
+                s.running -= 1;
+                s.running_memory -= run.memory_bytes;
+                s.done += 1;
+                if r.status != "ok" {
+                    s.failed += 1;
+                }
+                if !opts.quiet {
+                    let elapsed = t0.elapsed().as_secs_f64();
+                    let left = total - s.done;
+                    // Runs finish at the observed rate (which includes the parallelism).
+                    let eta = elapsed / s.done as f64 * left as f64;
+                    eprintln!(
+                        "[{}/{total}] {} {} {:.1} s {} ({} failed) ETA {}",
+                        s.done,
+                        r.id,
+                        if r.status == "ok" { "ok" } else { "FAILED" },
+                        r.wall_time,
+                        engine::human_bytes(r.peak_memory),
+                        s.failed,
+                        human_duration(eta),
+                    );
+                    if r.status != "ok" {
+                        eprintln!("      {}", r.error.lines().next().unwrap_or(""));
+                    }
+                }
+                drop(s);
+                freed.notify_all();
+            });
+        }
+    });
+    let s = shared.into_inner().expect("lock");
+    (s.done, s.failed)
+}
+
+/// Runs one child and returns its result; a child that died without writing one gets a failed
+/// result naming its exit status and the end of its log.
+fn run_child(dir: &Path, run: &RunSpec, launch: &Launcher) -> RunResult {
+    let rdir = run_dir(dir, &run.id);
+    let _ = std::fs::remove_file(result_path(dir, &run.id));
+    let t = Instant::now();
+    let log = rdir.join("log.txt");
+    let spawned = std::fs::create_dir_all(&rdir)
+        .and_then(|_| std::fs::File::create(&log))
+        .and_then(|f| {
+            let f2 = f.try_clone()?;
+            launch(dir, &run.id).stdout(f).stderr(f2).status()
+        });
+    if let Some(r) = load_result(dir, &run.id) {
+        return r;
+    }
+    let why = match spawned {
+        Ok(st) => format!("the run's process ended with {st} without a result"),
+        Err(e) => format!("cannot start the run's process: {e}"),
+    };
+    let tail: String = std::fs::read_to_string(&log)
+        .map(|s| {
+            let lines: Vec<&str> = s.lines().collect();
+            lines[lines.len().saturating_sub(5)..].join("\n")
+        })
+        .unwrap_or_default();
+    let r = RunResult {
+        id: run.id.clone(),
+        status: "failed".into(),
+        error: if tail.is_empty() {
+            why
+        } else {
+            format!("{why}; log: {tail}")
+        },
+        seed: run.seed,
+        wall_time: t.elapsed().as_secs_f64(),
+        peak_memory: 0,
+        values: Vec::new(),
+    };
+    let _ = save_result(dir, &r);
+    r
+}
+
+pub fn human_duration(s: f64) -> String {
+    if !s.is_finite() {
+        return "?".into();
+    }
+    let s = s.round() as u64;
+    match s {
+        0..60 => format!("{s}s"),
+        60..3600 => format!("{}m{:02}s", s / 60, s % 60),
+        _ => format!("{}h{:02}m", s / 3600, (s % 3600) / 60),
+    }
+}

@@ -1,0 +1,401 @@
+//! End-to-end sweeps and studies over small real pipelines. The runs are child processes as
+//! with `pipe`: this test binary re-runs itself with `child_entry` (an ignored test that acts
+//! as `pipe sweep run-one DIR ID` when GP_SWEEP_DIR/GP_SWEEP_ID are set).
+
+use grainpipe_core::engine::run_quietly;
+use grainpipe_core::pipeline::PipelineDoc;
+use grainpipe_core::units::{Length, Q};
+use grainpipe_core::{
+    params, Artifact, ArtifactKind, ArtifactMeta, ColumnData, InputMetas, Inputs, Outputs,
+    PortSpec, Preflight, Registry, RunContext, StageError, StageInfo, Table, TypedStage,
+};
+use grainpipe_sweep::runner::{self, LocalOptions};
+use grainpipe_sweep::spec::{self, Manifest};
+use grainpipe_sweep::{prepare, SetupArgs, StudyArgs};
+use std::path::Path;
+use std::process::Command;
+
+/// The volume of a sphere of radius `radius` voxelised in slices of thickness `voxel_size`
+/// (a stack of cylinders through the slice centres): the midpoint rule on pi (R^2 - z^2),
+/// whose error is exactly pi R h^2 / 6, a problem of known order 2.
+#[params]
+struct SlicedParams {
+    /// slice thickness
+    #[param(default = Q::new(1e-5))]
+    voxel_size: Q<Length>,
+    /// sphere radius
+    #[param(default = Q::new(1e-4))]
+    radius: Q<Length>,
+}
+
+struct SlicedSphere;
+
+impl TypedStage for SlicedSphere {
+    type Params = SlicedParams;
+    type Plan = ();
+    fn info(&self) -> StageInfo {
+        StageInfo::new(
+            "test.sliced_sphere",
+            "1.0.0",
+            "Test stage: a sliced sphere's volume.",
+        )
+        .outputs(vec![PortSpec::new("report", ArtifactKind::Table, "volume")])
+    }
+    fn preflight(&self, p: &SlicedParams, _: &InputMetas) -> Result<Preflight, StageError> {
+        if p.voxel_size.si().is_nan() || p.voxel_size.si() <= 0.0 {
+            return Err(StageError::param("voxel_size", "must be positive"));
+        }
+        Ok(Preflight::from_info(&self.info(), 1024)
+            .announce("report", ArtifactMeta::of(ArtifactKind::Table)))
+    }
+    fn run(
+        &self,
+        p: &SlicedParams,
+        _: &(),
+        _: &Inputs,
+        _: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let (h, r) = (p.voxel_size.si(), p.radius.si());
+        let n = (2.0 * r / h).round() as usize;
+        let h = 2.0 * r / n as f64;
+        let v: f64 = (0..n)
+            .map(|k| {
+                let z = -r + (k as f64 + 0.5) * h;
+                std::f64::consts::PI * (r * r - z * z) * h
+            })
+            .sum();
+        let mut o = Outputs::new();
+        o.insert(
+            "report".into(),
+            Artifact::Table(Table::new("v").with_f64("volume", "m^3", vec![v])),
+        );
+        Ok(o)
+    }
+}
+
+fn registry() -> Registry {
+    let mut r = Registry::new();
+    grainpipe_formats::register(&mut r);
+    grainpipe_geometry::register(&mut r);
+    grainpipe_analysis::register(&mut r);
+    r.add_stage(SlicedSphere);
+    r
+}
+
+#[test]
+#[ignore = "the child process of the other tests"]
+fn child_entry() {
+    let (Ok(dir), Ok(id)) = (std::env::var("GP_SWEEP_DIR"), std::env::var("GP_SWEEP_ID")) else {
+        return;
+    };
+    let mut reg = registry();
+    let r = runner::run_one(Path::new(&dir), &id, &mut reg, &mut |_, _| Ok(())).unwrap();
+    std::process::exit(if r.status == "ok" { 0 } else { 1 });
+}
+
+fn launcher() -> impl Fn(&Path, &str) -> Command + Sync {
+    let exe = std::env::current_exe().unwrap();
+    move |dir: &Path, id: &str| {
+        let mut c = Command::new(&exe);
+        c.args([
+            "child_entry",
+            "--exact",
+            "--ignored",
+            "--nocapture",
+            "--test-threads=1",
+        ])
+        .env("GP_SWEEP_DIR", dir)
+        .env("GP_SWEEP_ID", id)
+        .env("RAYON_NUM_THREADS", "1");
+        c
+    }
+}
+
+const PIPELINE: &str = "name: tiny
+seed: 7
+stages:
+  - id: pack
+    use: packing.rsa
+    with:
+      size: [200 um, 200 um, 200 um]
+      radius: { kind: fixed, value: 25 um }
+      volume_fraction: 0.2
+  - id: voxels
+    use: voxelize.packing
+    in: { packing: pack.packing }
+    with: { voxels_per_diameter: 6 }
+  - id: phases
+    use: analysis.phases
+    in: { image: voxels.image }
+export:
+  - { from: phases.phases, to: out/tiny/phases.csv }
+";
+
+fn setup(dir: &Path, vary: &[&str], realizations: usize, collect: &[&str]) -> SetupArgs {
+    let file = dir.join("tiny.yaml");
+    if !file.exists() {
+        std::fs::write(&file, PIPELINE).unwrap();
+    }
+    SetupArgs {
+        file: Some(file),
+        vary: vary.iter().map(|s| s.to_string()).collect(),
+        realizations,
+        collect: collect.iter().map(|s| s.to_string()).collect(),
+        out: Some(dir.join("sweep")),
+        cache_dir: dir.join("cache"),
+        quiet: true,
+        ..Default::default()
+    }
+}
+
+fn opts(jobs: usize, stop_after: Option<usize>) -> LocalOptions {
+    LocalOptions {
+        jobs,
+        memory_budget: spec::available_memory(),
+        stop_after,
+        quiet: true,
+    }
+}
+
+fn mtime(p: &Path) -> std::time::SystemTime {
+    std::fs::metadata(p).unwrap().modified().unwrap()
+}
+
+/// Every combination runs once; an interrupted sweep resumes without redoing finished runs; a
+/// re-run does nothing; an impossible point fails at run time and is counted and recorded; the
+/// collected values equal an in-process run of the same pipeline with the run's overrides and
+/// seed; realization k has the same seed at every point.
+#[test]
+fn sweep_runs_once_resumes_and_records_failures() {
+    let tmp = tempfile::tempdir().unwrap();
+    let a = setup(
+        tmp.path(),
+        &[
+            "pack.volume_fraction=0.15,0.25",
+            "pack.max_attempts_per_sphere=200000,1",
+        ],
+        2,
+        &[
+            "phases.phases.volume_fraction",
+            "voxels.report.image_fraction",
+        ],
+    );
+    let mut reg = registry();
+    let launch = launcher();
+    let p = prepare(&a, &mut reg, &mut |_, _| Ok(())).unwrap();
+    assert_eq!(p.manifest.runs.len(), 8);
+    assert_eq!(p.todo.len(), 8);
+    // Interrupted after 3 runs.
+    let (done, _) = runner::run_local(&p.dir, &p.manifest, &p.todo, &opts(1, Some(3)), &launch);
+    assert_eq!(done, 3);
+    let first: Vec<_> = p.manifest.runs[..3]
+        .iter()
+        .map(|r| mtime(&runner::result_path(&p.dir, &r.id)))
+        .collect();
+    assert!(runner::load_result(&p.dir, &p.manifest.runs[3].id).is_none());
+    // Resume: only the 5 others run.
+    let p = prepare(&a, &mut reg, &mut |_, _| Ok(())).unwrap();
+    assert_eq!(p.todo, (3..8).collect::<Vec<_>>());
+    let (done, failed) = runner::run_local(&p.dir, &p.manifest, &p.todo, &opts(2, None), &launch);
+    assert_eq!(
+        (done, failed),
+        (5, 3),
+        "points with one attempt per sphere jam"
+    );
+    for (r, t) in p.manifest.runs[..3].iter().zip(&first) {
+        assert_eq!(
+            mtime(&runner::result_path(&p.dir, &r.id)),
+            *t,
+            "{} was redone",
+            r.id
+        );
+    }
+    // Nothing left to do.
+    let p = prepare(&a, &mut reg, &mut |_, _| Ok(())).unwrap();
+    assert!(p.todo.is_empty());
+    let (t, counts) = grainpipe_sweep::table::write_tables(&p.dir, &p.manifest).unwrap();
+    assert_eq!((counts.ok, counts.failed, counts.missing), (4, 4, 0));
+    // The table: one row per run, failures with their error and NaN values.
+    assert_eq!(t.rows(), 8);
+    let status = match &t.column("status").unwrap().data {
+        ColumnData::Str(s) => s.clone(),
+        _ => panic!("status is text"),
+    };
+    let errors = match &t.column("error").unwrap().data {
+        ColumnData::Str(s) => s.clone(),
+        _ => panic!("error is text"),
+    };
+    let attempts = t.f64_column("pack.max_attempts_per_sphere").unwrap();
+    let solid = t.f64_column("phases.phases.volume_fraction[1]").unwrap();
+    for k in 0..8 {
+        assert_eq!(
+            status[k] == "ok",
+            attempts[k] > 1.0,
+            "row {k}: {}",
+            errors[k]
+        );
+        if status[k] != "ok" {
+            assert!(errors[k].contains("jammed"), "{}", errors[k]);
+            assert!(solid[k].is_nan());
+        }
+    }
+    assert_eq!(
+        t.column("phases.phases.volume_fraction[1]").unwrap().unit,
+        "1"
+    );
+    // Common random numbers.
+    let seeds = match &t.column("seed").unwrap().data {
+        ColumnData::I64(s) => s.clone(),
+        _ => panic!(),
+    };
+    assert_eq!(seeds[0], seeds[2]);
+    assert_ne!(seeds[0], seeds[1]);
+    // Independent reference: the same pipeline run in-process with the run's overrides and
+    // seed (no cache, no child process) gives the same numbers.
+    let run = &p.manifest.runs[5]; // p002-r01: volume_fraction 0.25, 200000 attempts
+    assert_eq!(
+        run.overrides,
+        [
+            "pack.volume_fraction=0.25",
+            "pack.max_attempts_per_sphere=200000"
+        ]
+    );
+    let mut doc = PipelineDoc::load(&tmp.path().join("tiny.yaml")).unwrap();
+    for o in &run.overrides {
+        doc.apply_override(o).unwrap();
+    }
+    doc.seed = run.seed;
+    doc.redirect_exports(&tmp.path().join("reference"));
+    let reference = run_quietly(&doc, &registry()).unwrap();
+    assert_eq!(
+        reference.column("phases.phases", "volume_fraction")[1],
+        solid[5]
+    );
+    // Exports of each run went to its own folder.
+    assert!(p.dir.join("runs/p002-r01/tiny/phases.csv").is_file());
+    // The HDF5 table holds the same and the summary has one row per point and quantity.
+    let h5 = grainpipe_formats::read_h5_table(&p.dir.join("sweep.h5")).unwrap();
+    assert_eq!(
+        h5.f64_column("phases.phases.volume_fraction[1]")
+            .unwrap()
+            .len(),
+        8
+    );
+    let csv = grainpipe_formats::read_table_csv(&p.dir.join("sweep.csv")).unwrap();
+    assert_eq!(csv.rows(), 8);
+    let summary = grainpipe_formats::read_table_csv(&p.dir.join("summary.csv")).unwrap();
+    let n_failed = match &summary.column("n_failed").unwrap().data {
+        ColumnData::I64(v) => v.clone(),
+        _ => panic!(),
+    };
+    assert_eq!(
+        n_failed.iter().sum::<i64>(),
+        4 * 3,
+        "4 failed runs x 3 collected quantities"
+    );
+    // A different sweep in the same directory is refused.
+    let other = setup(tmp.path(), &["pack.volume_fraction=0.15"], 2, &[]);
+    assert!(prepare(&other, &mut reg, &mut |_, _| Ok(())).is_err());
+}
+
+/// Every parameter point is preflighted before anything runs and every invalid point is
+/// reported, with the did-you-mean help of `--set`.
+#[test]
+fn invalid_points_are_all_reported_before_running() {
+    let tmp = tempfile::tempdir().unwrap();
+    let reg = registry();
+    let a = setup(
+        tmp.path(),
+        &["pack.volume_fraction=0.1,1.5,0.2,2.0"],
+        3,
+        &[],
+    );
+    let doc = PipelineDoc::load(a.file.as_ref().unwrap()).unwrap();
+    let vary = vec![spec::parse_vary(&a.vary[0]).unwrap()];
+    let m = Manifest {
+        format: spec::MANIFEST_FORMAT,
+        pipeline: a.file.clone().unwrap(),
+        pipeline_blake3: String::new(),
+        pipeline_name: doc.name.clone(),
+        base_seed: 7,
+        fixed: vec![],
+        vary: vary.clone(),
+        realizations: 3,
+        collect: vec![],
+        cache_dir: None,
+        threads: None,
+        rve: None,
+        runs: spec::runs(&vary, 3, 7),
+    };
+    let (mem, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[]);
+    assert_eq!(mem.len(), 4);
+    assert_eq!(errors.len(), 2, "{errors:?}");
+    assert!(errors[0].0.contains("1.5") && errors[1].0.contains("2.0"));
+    assert!(errors[0].1.contains("volume_fraction"));
+    // A misspelt key: every point is refused, with a suggestion.
+    let vary = vec![spec::parse_vary("pack.volume_fractio=0.1,0.2").unwrap()];
+    let m = Manifest {
+        runs: spec::runs(&vary, 1, 7),
+        vary,
+        ..m
+    };
+    let (_, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[]);
+    assert_eq!(errors.len(), 2);
+    assert!(
+        errors[0].1.contains("did you mean `volume_fraction`"),
+        "{}",
+        errors[0].1
+    );
+    // A bad --collect port, with a suggestion.
+    let c = spec::parse_collect("voxels.reprt.image_fraction").unwrap();
+    let (_, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[c]);
+    assert!(
+        errors[0].1.contains("did you mean `voxels.report`"),
+        "{}",
+        errors[0].1
+    );
+    // prepare() refuses before running anything.
+    let mut reg = registry();
+    assert!(prepare(&a, &mut reg, &mut |_, _| Ok(())).is_err());
+    assert!(!tmp.path().join("sweep/runs").exists());
+}
+
+/// A study of a problem of known order: the sliced sphere converges as h^2 to 4/3 pi R^3;
+/// the study recovers the order and the limit, and the target error picks the expected level.
+#[test]
+fn study_recovers_order_and_extrapolated_volume() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("sphere.yaml");
+    std::fs::write(
+        &file,
+        "name: sphere\nstages:\n  - id: s\n    use: test.sliced_sphere\n    with: { radius: 100 um }\n",
+    )
+    .unwrap();
+    let args = StudyArgs {
+        file,
+        vary: "s.voxel_size=40um,20um,10um,5um".into(),
+        metric: "s.report.volume".into(),
+        target_error: Some(0.01),
+        overrides: vec![],
+        out: Some(tmp.path().join("study")),
+        threads: None,
+        quiet: true,
+    };
+    let mut reg = registry();
+    let (dir, a) =
+        grainpipe_sweep::study::run_study(&args, &mut reg, &mut |_, _| Ok(()), &launcher())
+            .unwrap_or_else(|_| panic!("study failed"));
+    let (p, v) = a.richardson.expect("monotone convergence");
+    let exact = 4.0 / 3.0 * std::f64::consts::PI * 1e-12;
+    assert!((p - 2.0).abs() < 1e-6, "order {p}");
+    assert!((v / exact - 1.0).abs() < 1e-9, "extrapolated {v}");
+    // Relative errors pi R h^2 / 6 / V = h^2 / (8 R^2): 2 %, 0.5 %, 0.125 %, 0.03 %.
+    assert!((a.levels[0].error - 0.02).abs() < 1e-9);
+    assert_eq!(a.chosen, Some(1), "20 um is the coarsest level under 1 %");
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("study.json")).unwrap()).unwrap();
+    assert_eq!(s["chosen_level"], "20um");
+    for f in ["study.csv", "study.png", "study.svg", "study_memory.png"] {
+        assert!(dir.join(f).is_file(), "{f}");
+    }
+}

@@ -1,0 +1,326 @@
+"""Tests of the `grainpipe` Python package (python/): results equal, element for element, to
+the files `pipe` exports for the same pipeline and seed; errors carry their locations; a
+cancelled run raises KeyboardInterrupt and leaves no half-written export; a plugin stage
+works; the quickstart example runs.
+
+Needs the package installed in the interpreter (`make python`) and the `pipe` binary ($PIPE,
+default target/release/pipe). The plugin test builds examples/plugin-example with cargo
+($CARGO) unless $GRAINPIPE_PLUGIN_EXAMPLE names the built library.
+"""
+
+import csv
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
+
+import grainpipe as gp  # noqa: E402
+import h5py  # noqa: E402
+import netCDF4  # noqa: E402
+import pyvista as pv  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+SPHERES = ROOT / "pipelines/spheres.yaml"
+PIPE = str((ROOT / os.environ.get("PIPE", "target/release/pipe")).resolve())
+# A smaller box than the shipped pipeline, so the test takes about a second.
+SET = {"pack.size": "[200 um, 200 um, 200 um]"}
+SEED = 7
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """`pipe run` of spheres.yaml; the directory of its exports."""
+    cwd = tmp_path_factory.mktemp("pipe")
+    args = [PIPE, "run", str(SPHERES), "--quiet", "--no-cache", "--seed", str(SEED)]
+    for k, v in SET.items():
+        args += ["--set", f"{k}={v}"]
+    subprocess.run(args, cwd=cwd, check=True)
+    return cwd / "out/spheres"
+
+
+@pytest.fixture(scope="module")
+def result():
+    """The same pipeline and seed from Python, writing nothing."""
+    return gp.run(SPHERES, set=SET, seed=SEED, cache=False, exports=False, progress=False)
+
+
+def test_image_equals_vti_and_netcdf(exported, result):
+    img = result["voxels.image"]
+    assert isinstance(img, gp.Image)
+    assert img.array.dtype == np.uint8
+    nx, ny, nz = img.dims
+    assert img.array.shape == (nz, ny, nx)
+    vti = pv.read(exported / "image.vti")
+    assert tuple(d - 1 for d in vti.dimensions) == img.dims
+    np.testing.assert_array_equal(np.asarray(vti.spacing), img.spacing)
+    np.testing.assert_array_equal(np.asarray(vti.origin), img.origin)
+    (name,) = [n for n in vti.cell_data.keys() if vti.cell_data[n].size == img.array.size]
+    # VTK's cell order is x fastest: the C-order ravel of (z, y, x).
+    np.testing.assert_array_equal(vti.cell_data[name], img.array.ravel())
+    with netCDF4.Dataset(exported / "image.nc") as nc:
+        np.testing.assert_array_equal(nc.variables["phase"][:], img.array)
+        np.testing.assert_array_equal(nc.variables["x"][:], img.coords()["x"])
+        flags = nc.variables["phase"].getncattr("flag_values")
+        assert sorted(int(f) for f in np.atleast_1d(flags)) == sorted(img.phases)
+    # Provenance: the same seed and step as the exported files carry.
+    assert result.provenance["voxels"]["seed"] == str(SEED)
+    assert img.provenance["step"] == "voxels.image"
+    assert json.loads(img.provenance["params"])["voxels_per_diameter"] == 20
+
+
+def test_packing_equals_h5(exported, result):
+    p = result["pack.packing"]
+    assert isinstance(p, gp.Packing)
+    with h5py.File(exported / "packing.h5", "r") as f:
+        np.testing.assert_array_equal(f["positions"][()], p.positions)
+        np.testing.assert_array_equal(f["radius"][()], p.radii)
+        np.testing.assert_array_equal(f["orientation"][()], p.quaternions)
+        np.testing.assert_array_equal(f["clump_index"][()], p.clump_index)
+        np.testing.assert_array_equal(f["domain"].attrs["max"], p.domain["max"])
+    assert p.positions.shape == (len(p), 3)
+    np.testing.assert_array_equal(p.body_ids, np.arange(len(p)))
+    poly = p.to_pyvista()
+    assert poly.n_points == len(p)
+    np.testing.assert_array_equal(poly.point_data["radius"], p.radii)
+    vtp = pv.read(exported / "packing.vtp")
+    np.testing.assert_array_equal(np.asarray(vtp.points), p.positions)
+
+
+def read_csv(path):
+    # Provenance may precede the header as `# key: value` comment lines.
+    with open(path) as f:
+        rows = list(csv.reader(line for line in f if not line.startswith("#")))
+    return rows[0], rows[1:]
+
+
+def test_tables_equal_csv(exported, result):
+    for port, name in [("pack.report", "rsa.csv"), ("voxels.report", "voxelize.csv")]:
+        t = result[port]
+        assert isinstance(t, gp.Table)
+        header, rows = read_csv(exported / name)
+        assert len(header) == len(t)
+        for k, (col, values) in enumerate(t.columns.items()):
+            unit = t.units[col]
+            assert header[k] == (f"{col} [{unit}]" if unit else col)
+            got = [float(r[k]) for r in rows]
+            # The CSV holds the shortest round-trip decimal of each double: exact.
+            np.testing.assert_array_equal(np.asarray(values, dtype=float), got)
+
+
+def test_image_fraction_matches_analytic(result):
+    img, p = result["voxels.image"], result["pack.packing"]
+    box = np.prod(np.asarray(p.domain["max"]) - np.asarray(p.domain["min"]))
+    analytic = (4.0 / 3.0 * math.pi * np.sum(p.radii**3)) / box
+    solid = 1.0 - img.fraction(0)
+    assert abs(solid - analytic) < 0.01, (solid, analytic)
+    g = img.to_pyvista()
+    assert g.n_cells == img.array.size
+
+
+def test_zero_copy_and_layout(result):
+    a = result["voxels.image"].array
+    # numpy owns nothing: the memory is the Vec the stage produced.
+    assert not a.flags["OWNDATA"]
+    assert a.flags["C_CONTIGUOUS"]
+    assert result["voxels.image"].array is a
+
+
+def test_dict_pipeline_and_validate():
+    doc = {
+        "name": "from-python",
+        "seed": 3,
+        "stages": [
+            {"id": "pack", "use": "packing.rsa",
+             "with": {"size": ["150 um", "150 um", "150 um"],
+                      "radius": {"kind": "fixed", "value": "25 um"}, "volume_fraction": 0.2}},
+            {"id": "voxels", "use": "voxelize.packing", "in": {"packing": "pack.packing"},
+             "with": {"voxels_per_diameter": 10}},
+        ],
+    }
+    plan = gp.validate(doc, exports=False)
+    assert [s["id"] for s in plan["steps"]] == ["pack", "voxels"]
+    grid = plan["steps"][1]["outputs"]["image"]["grid"]
+    assert plan["memory_bytes"] > 0
+    r = gp.run(doc, cache=False, progress=False)
+    img = r["voxels.image"]
+    assert list(img.dims) == grid["dims"]
+    np.testing.assert_allclose(img.spacing, grid["spacing"], rtol=0, atol=0)
+    # The same pipeline as YAML text gives the same voxels.
+    text = json.dumps(doc)
+    r2 = gp.run(text + "\n", cache=False, progress=False)
+    np.testing.assert_array_equal(r2["voxels.image"].array, img.array)
+
+
+def test_describe_is_pipe_describe():
+    d = gp.describe("packing.rsa")
+    out = subprocess.run([PIPE, "describe", "--json", "packing.rsa"], check=True,
+                         capture_output=True, text=True).stdout
+    assert d == json.loads(out)
+    names = [p["name"] for p in d["params"]]
+    assert "volume_fraction" in names
+    assert [o["name"] for o in d["outputs"]][:1] == ["packing"]
+    assert "packing.rsa" in gp.stages()
+    with pytest.raises(gp.PipelineError) as e:
+        gp.describe("packing.rsaa")
+    assert e.value.suggestion == "packing.rsa" or "packing.rsa" in str(e.value.suggestion)
+
+
+def test_pipeline_error_carries_location(tmp_path):
+    bad = SPHERES.read_text().replace("volume_fraction: 0.30", "volume_fractoin: 0.30")
+    path = tmp_path / "bad.yaml"
+    path.write_text(bad)
+    with pytest.raises(gp.PipelineError) as e:
+        gp.validate(path)
+    err = e.value
+    assert err.file == str(path)
+    line = next(i for i, l in enumerate(bad.splitlines(), 1) if "volume_fractoin" in l)
+    assert err.line == line
+    assert err.column == bad.splitlines()[line - 1].index("volume_fractoin") + 1
+    assert err.key == "volume_fractoin"
+    assert "volume_fraction" in err.suggestion
+    assert f"{path}:{line}:" in str(err)
+    # An unknown stage in a pipeline given as text: the pseudo path and the suggestion.
+    text = "name: t\nstages:\n  - id: pack\n    use: packing.rsaa\n"
+    with pytest.raises(gp.PipelineError) as e:
+        gp.run(text, cache=False, progress=False)
+    assert (e.value.file, e.value.line, e.value.key) == ("<python>", 4, "packing.rsaa")
+    assert "packing.rsa" in e.value.suggestion
+    # A bad override names --set.
+    with pytest.raises(gp.PipelineError) as e:
+        gp.validate(SPHERES, set={"nosuchstep.x": 1})
+    assert "nosuchstep" in str(e.value)
+
+
+def test_stage_error_is_raised():
+    # 0.38 passes the input check (below the 0.383 jamming limit) but RSA in so small a box
+    # jams first: the stage fails at run time and says how far it got.
+    with pytest.raises(gp.StageError) as e:
+        gp.run(SPHERES, set={**SET, "pack.volume_fraction": 0.38}, seed=SEED, cache=False,
+               exports=False, targets=["pack"], progress=False)
+    assert e.value.line == 8 and e.value.key == "packing.rsa"
+    assert "volume fraction reached 0.3" in e.value.message
+    assert not isinstance(e.value, gp.PipelineError)
+
+
+def test_progress_events(tmp_path):
+    events = []
+    gp.run(SPHERES, set=SET, seed=SEED, cache=False, exports=False, progress=events.append)
+    kinds = [e["event"] for e in events]
+    assert kinds.count("start") == 2 and kinds.count("finish") == 2
+    starts = [e for e in events if e["event"] == "start"]
+    assert [s["step"] for s in starts] == ["pack", "voxels"]
+    assert all(s["count"] == 2 for s in starts)
+
+
+def test_cache_is_shared_with_pipe(tmp_path):
+    cache = tmp_path / "cache"
+    a = gp.run(SPHERES, set=SET, seed=SEED, cache=cache, exports=False, progress=False)
+    b = gp.run(SPHERES, set=SET, seed=SEED, cache=cache, exports=False, progress=False)
+    assert not a.stats["pack"]["from_cache"]
+    assert b.stats["pack"]["from_cache"] and b.stats["voxels"]["from_cache"]
+    np.testing.assert_array_equal(a["voxels.image"].array, b["voxels.image"].array)
+
+
+def test_cancelled_run_raises_keyboard_interrupt(tmp_path):
+    out = tmp_path / "run"
+    seen = []
+
+    def interrupt(event):
+        seen.append(event)
+        # Ctrl-C while voxelize runs: the packing's exports are complete by then.
+        if event["event"] == "start" and event["step"] == "voxels":
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        gp.run(SPHERES, set={"pack.size": "[400 um, 400 um, 400 um]",
+                             "voxels.voxels_per_diameter": 40},
+               seed=SEED, cache=False, out=out, progress=interrupt)
+    written = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
+    # Nothing half-written: no temporary files, and every file present opens completely.
+    assert all(not Path(w).name.startswith(".") and "tmp" not in w for w in written), written
+    for w in written:
+        if w.endswith(".h5"):
+            with h5py.File(out / w, "r") as f:
+                assert f["positions"].shape[1] == 3
+        elif w.endswith(".vtp"):
+            assert pv.read(out / w).n_points > 0
+    # The image the interrupted step would have produced was not exported.
+    assert not any(w.startswith("spheres/image") for w in written), written
+
+
+def plugin_library():
+    lib = os.environ.get("GRAINPIPE_PLUGIN_EXAMPLE")
+    if lib:
+        return Path(lib)
+    cargo = os.environ.get("CARGO", "cargo")
+    subprocess.run([cargo, "build", "--release", "-q", "-p", "grainpipe-plugin-example"],
+                   cwd=ROOT, check=True)
+    target = Path(os.environ.get("CARGO_TARGET_DIR", ROOT / "target"))
+    return target / "release/libgrainpipe_plugin_example.so"
+
+
+def test_plugin_stage_from_python():
+    lib = plugin_library()
+    text = """name: plugin
+seed: 9
+stages:
+  - id: pack
+    use: packing.rsa
+    with: { size: [200 um, 200 um, 200 um], volume_fraction: 0.25 }
+  - id: voxels
+    use: voxelize.packing
+    in: { packing: pack.packing }
+    with: { voxels_per_diameter: 6 }
+  - id: profile
+    use: example.porosity_profile
+    in: { image: voxels.image }
+    with: { axis: y }
+"""
+    assert "example.porosity_profile" in gp.stages(plugin_dirs=[lib])
+    r = gp.run(text, cache=False, progress=False, plugin_dirs=[lib])
+    prof = r["profile.profile"]
+    img = r["voxels.image"]
+    porosity = [c for c in prof.columns if "poros" in c][0]
+    expected = (img.array == 0).mean(axis=(0, 2))  # per y slice of (z, y, x)
+    np.testing.assert_allclose(prof[porosity], expected, rtol=0, atol=1e-15)
+    # Without the library the stage is unknown: an input error, nothing ran.
+    with pytest.raises(gp.PipelineError):
+        gp.validate(text)
+
+
+def test_quickstart_example_runs(tmp_path):
+    env = dict(os.environ, MPLBACKEND="Agg")
+    subprocess.run([sys.executable, str(ROOT / "examples/python/quickstart.py"), str(tmp_path)],
+                   cwd=ROOT, check=True, env=env)
+    for name in ("slice.png", "sizes.png"):
+        png = tmp_path / name
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_sigint_cancels_at_next_checkpoint(tmp_path):
+    """A real Ctrl-C (SIGINT to this process) while a stage runs: KeyboardInterrupt, soon."""
+    import signal
+    import threading
+    import time
+
+    timer = threading.Timer(0.5, os.kill, (os.getpid(), signal.SIGINT))
+    started = time.monotonic()
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            # About 370 million voxels: far longer than the 0.5 s before the signal.
+            gp.run(SPHERES, set={"pack.size": "[600 um, 600 um, 600 um]",
+                                 "voxels.voxels_per_diameter": 60},
+                   seed=SEED, cache=tmp_path / "cache", out=tmp_path / "run", progress=False)
+    finally:
+        timer.cancel()
+    assert time.monotonic() - started < 30
+    # Nothing of the interrupted step: no export, no cache entry for it.
+    assert not list((tmp_path / "run").rglob("image*"))
