@@ -10,6 +10,8 @@ fn registry() -> Registry {
     let mut r = Registry::new();
     grainpipe_formats::register(&mut r);
     grainpipe_cemented::register(&mut r);
+    // cemented2d.yaml ends with peridynamics.bond_based and analysis.stress_stats.
+    grainpipe_peridynamics::register(&mut r);
     r
 }
 
@@ -41,6 +43,7 @@ fn shipped_pipeline_runs_small_and_is_thread_count_independent() {
         assert!(out.path().join("cemented2d/phases.vti").is_file());
         assert!(out.path().join("cemented2d/particles.vtp").is_file());
         assert!(out.path().join("cemented2d/pores_summary.csv").is_file());
+        assert!(out.path().join("cemented2d/stress_stats.csv").is_file());
         res
     };
     let a = run(1);
