@@ -6,19 +6,61 @@ use grainpipe_core::registry::Registered;
 use grainpipe_core::Registry;
 use serde_json::{json, Value};
 use std::fmt::Write;
+use std::path::Path;
 
-/// First sentence of a doc paragraph: up to the first ". " followed by a capital letter that
-/// does not end an abbreviation ("et al.", "e.g.", "eq.").
+/// First sentence of a doc paragraph: up to the first ". " followed by a capital letter,
+/// outside parentheses (a citation such as "(Heinze et al., Phys. Rev. E, 2020)" does not end
+/// it), that does not end an abbreviation ("et al.", "e.g.", "eq.").
 fn summary(doc: &str) -> &str {
     const ABBREVIATIONS: [&str; 6] = ["al", "e.g", "i.e", "eq", "cf", "Fig"];
-    for (i, _) in doc.match_indices(". ") {
-        let next_is_capital = doc[i + 2..].chars().next().is_some_and(char::is_uppercase);
-        let word = doc[..i].rsplit(' ').next().unwrap_or("");
-        if next_is_capital && !ABBREVIATIONS.contains(&word) {
-            return &doc[..=i];
+    let mut depth = 0i32;
+    for (i, c) in doc.char_indices() {
+        match c {
+            '(' | '[' => depth += 1,
+            ')' | ']' => depth -= 1,
+            '.' if depth <= 0 && doc[i + 1..].starts_with(' ') => {
+                let next_is_capital = doc[i + 2..].chars().next().is_some_and(char::is_uppercase);
+                let word = doc[..i].rsplit(' ').next().unwrap_or("");
+                if next_is_capital && !ABBREVIATIONS.contains(&word) {
+                    return &doc[..=i];
+                }
+            }
+            _ => {}
         }
     }
     doc.trim_end()
+}
+
+/// Columns `pipe list` lays its lines out in: the terminal's width, or 100 when standard
+/// output is not a terminal (a pipe, a file).
+pub fn output_width() -> usize {
+    terminal_size::terminal_size_of(std::io::stdout())
+        .map(|(w, _)| usize::from(w.0))
+        .filter(|&w| w >= 40)
+        .unwrap_or(100)
+}
+
+/// `text` cut to at most `width` characters, an ellipsis marking the cut.
+fn fit(text: &str, width: usize) -> String {
+    if text.chars().count() <= width {
+        return text.to_string();
+    }
+    let mut out: String = text.chars().take(width.saturating_sub(1)).collect();
+    out.truncate(out.trim_end().len());
+    out.push('…');
+    out
+}
+
+/// Where a stage comes from, short: nothing for built-in stages, a plugin's file name.
+fn short_origin(origin: &str) -> String {
+    if origin == "built-in" {
+        return String::new();
+    }
+    let name = Path::new(origin)
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| origin.to_string());
+    format!("  [{name}]")
 }
 
 /// Extensions as `.a .b`, or a note that only `format:` selects the exporter.
@@ -34,10 +76,16 @@ fn extensions(e: &dyn grainpipe_core::Exporter) -> String {
     }
 }
 
-/// One line per stage (id, version, origin, summary) and the export formats.
+/// One line per stage (id, version, first sentence of its doc, the plugin file it comes
+/// from) and per export format, each cut to the terminal's width ([`output_width`]).
 pub fn list_text(r: &Registry) -> String {
+    list_text_width(r, output_width())
+}
+
+/// [`list_text`] laid out in `width` columns.
+pub fn list_text_width(r: &Registry, width: usize) -> String {
     let mut s = String::new();
-    let width = r
+    let id_width = r
         .stages()
         .iter()
         .map(|x| x.stage.info().id.len())
@@ -46,28 +94,20 @@ pub fn list_text(r: &Registry) -> String {
     writeln!(s, "Stages ({}):", r.stages().len()).unwrap();
     for x in r.stages() {
         let i = x.stage.info();
-        writeln!(
-            s,
-            "  {:width$}  {:7}  {}  [{}]",
-            i.id,
-            i.version,
-            summary(i.doc),
-            x.origin
-        )
-        .unwrap();
+        let head = format!("  {:id_width$}  {:7}  ", i.id, i.version);
+        let origin = short_origin(&x.origin);
+        // The origin is kept whole (it tells plugins apart); the summary gives way.
+        let room = width.saturating_sub(head.chars().count() + origin.chars().count());
+        writeln!(s, "{head}{}{origin}", fit(summary(i.doc), room.max(12))).unwrap();
     }
     writeln!(s, "\nExport formats:").unwrap();
     for e in r.exporters() {
-        writeln!(
-            s,
-            "  {:10} {:15} {}",
-            e.name(),
-            extensions(e.as_ref()),
-            e.doc()
-        )
-        .unwrap();
+        let head = format!("  {:10} {:15} ", e.name(), extensions(e.as_ref()));
+        let room = width.saturating_sub(head.chars().count());
+        writeln!(s, "{head}{}", fit(summary(e.doc()), room.max(12))).unwrap();
     }
-    s.push_str("\n`pipe describe <stage id>` shows parameters, defaults, units and ports.\n");
+    let footer = "`pipe describe <stage or format>` shows parameters, defaults, units and ports.";
+    writeln!(s, "\n{}", fit(footer, width)).unwrap();
     s
 }
 
@@ -211,7 +251,10 @@ pub fn registry_json(r: &Registry) -> Value {
         "grainpipe_version": grainpipe_core::VERSION,
         "stages": r.stages().into_iter().map(stage_json).collect::<Vec<_>>(),
         "export_formats": r.exporters().iter().map(|e| json!({
-            "name": e.name(), "extensions": e.extensions(), "doc": e.doc()
+            "name": e.name(), "extensions": e.extensions(), "doc": e.doc(),
+            "options": e.options().iter().map(|o| json!({
+                "name": o.name, "doc": o.doc, "default": o.default
+            })).collect::<Vec<_>>(),
         })).collect::<Vec<_>>(),
     })
 }
@@ -268,7 +311,8 @@ pub fn pipeline_schema(r: &Registry) -> Value {
                     "properties": {
                         "from": {"type": "string", "description": "step or step.port"},
                         "to": {"type": "string", "description": "output path; the extension selects the format"},
-                        "format": {"enum": formats}
+                        "format": {"enum": formats},
+                        "with": {"type": "object", "description": "writer options of the format (`pipe describe FORMAT`)"}
                     }
                 }
             }
@@ -282,12 +326,25 @@ pub fn describe(r: &Registry, id: &str) -> Result<String, String> {
         return Ok(describe_stage(x));
     }
     if let Some(e) = r.exporters().iter().find(|e| e.name() == id) {
-        return Ok(format!(
+        let mut text = format!(
             "export format `{}` ({})\n\n{}\n",
             e.name(),
             extensions(e.as_ref()),
-            e.doc()
-        ));
+            textwrap(e.doc(), 90)
+        );
+        let options = e.options();
+        if !options.is_empty() {
+            text.push_str("\nOptions (export `with:`):\n");
+            for o in options {
+                text.push_str(&format!(
+                    "  {}  (default {})\n      {}\n",
+                    o.name,
+                    o.default,
+                    textwrap(o.doc, 84).replace('\n', "\n      ")
+                ));
+            }
+        }
+        return Ok(text);
     }
     let hint = r
         .suggest_stage(id)

@@ -5,6 +5,7 @@
 pub mod describe;
 pub mod observe;
 
+use grainpipe_core::engine::{Plan, PlanOptions};
 use grainpipe_core::pipeline::{PipelineDoc, PipelineError};
 use grainpipe_core::plugin_host::{expand_locations, load_plugin};
 use grainpipe_core::Registry;
@@ -33,6 +34,57 @@ pub fn builtin_registry() -> Registry {
 /// Memory the system can still give, from /proc/meminfo (Linux); `None` elsewhere.
 pub fn available_memory() -> Option<u64> {
     grainpipe_core::engine::available_memory()
+}
+
+/// How to plan a loaded pipeline: the options `pipe run` / `pipe validate` and the Python
+/// package's `run` / `validate` share.
+#[derive(Clone, Debug, Default)]
+pub struct PlanRequest {
+    /// `--set step.key=value` assignments, applied in order.
+    pub overrides: Vec<String>,
+    /// `--seed`: replaces the pipeline's seed.
+    pub seed: Option<u64>,
+    /// `--target`: steps to compute in addition to what the exports need.
+    pub targets: Vec<String>,
+    /// Write nothing: the pipeline's exports are dropped, and the targets (every step when
+    /// none is named) are computed.
+    pub skip_exports: bool,
+    /// `--out DIR`: every export moves into DIR.
+    pub out_dir: Option<PathBuf>,
+}
+
+/// Loads the plugins a pipeline names, applies the request and plans the run (every check,
+/// nothing heavy runs). Errors point into the pipeline file (or the `--set` text).
+pub fn plan_pipeline(
+    mut doc: PipelineDoc,
+    registry: &mut Registry,
+    loader: &mut PluginLoader,
+    req: &PlanRequest,
+) -> Result<(PipelineDoc, Plan), PipelineError> {
+    loader.load_for(registry, &doc)?;
+    for o in &req.overrides {
+        doc.apply_override(o)?;
+    }
+    if let Some(s) = req.seed {
+        doc.seed = s;
+    }
+    let mut targets = req.targets.clone();
+    if req.skip_exports {
+        doc.exports.clear();
+        // Without exports nothing would be needed.
+        if targets.is_empty() {
+            targets = doc.steps.iter().map(|s| s.id.clone()).collect();
+        }
+    }
+    if let Some(dir) = &req.out_dir {
+        doc.redirect_exports(dir);
+    }
+    let opts = PlanOptions {
+        targets,
+        memory_limit: available_memory(),
+    };
+    let plan = grainpipe_core::engine::plan(&doc, registry, &opts)?;
+    Ok((doc, plan))
 }
 
 /// Loads plugin libraries into a registry, each library once.
@@ -125,5 +177,62 @@ impl PluginLoader {
                 .map_err(|e| at(*loc, e))?;
         }
         Ok(())
+    }
+}
+
+/// Writes the manual page of `cmd` (roff) to standard output: clap_mangen's page of `pipe`
+/// (synopsis, global options, the list of subcommands) and a section with each subcommand's
+/// arguments, so one page documents the whole command.
+pub fn print_man(mut cmd: clap::Command) -> std::process::ExitCode {
+    use roff::{bold, italic, roman, Roff};
+    use std::io::Write;
+    cmd.build();
+    let mut out = Vec::new();
+    let page = clap_mangen::Man::new(cmd.clone()).render(&mut out);
+    let mut roff = Roff::default();
+    roff.control("SH", ["COMMANDS"]);
+    for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set()) {
+        roff.control("SS", [format!("pipe {}", sub.get_name()).as_str()]);
+        if let Some(about) = sub.get_long_about().or(sub.get_about()) {
+            roff.text([roman(about.to_string())]);
+        }
+        for arg in sub.get_arguments().filter(|a| !a.is_hide_set()) {
+            let value = arg
+                .get_value_names()
+                .map(|v| {
+                    v.iter()
+                        .map(|n| n.to_string())
+                        .collect::<Vec<_>>()
+                        .join(" ")
+                })
+                .unwrap_or_default();
+            let mut head = Vec::new();
+            match (arg.get_short(), arg.get_long()) {
+                (Some(c), Some(l)) => head.push(bold(format!("-{c}, --{l}"))),
+                (Some(c), None) => head.push(bold(format!("-{c}"))),
+                (None, Some(l)) => head.push(bold(format!("--{l}"))),
+                (None, None) => head.push(italic(value.clone())),
+            }
+            let named = arg.get_long().is_some() || arg.get_short().is_some();
+            if named && arg.get_action().takes_values() && !value.is_empty() {
+                head.push(roman(" "));
+                head.push(italic(value));
+            }
+            roff.control("TP", []);
+            roff.text(head);
+            if let Some(help) = arg.get_long_help().or(arg.get_help()) {
+                roff.text([roman(help.to_string())]);
+            }
+        }
+    }
+    let written = page
+        .and_then(|()| roff.to_writer(&mut out))
+        .and_then(|()| std::io::stdout().write_all(&out));
+    match written {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: cannot write the manual page: {e}");
+            std::process::ExitCode::from(1)
+        }
     }
 }

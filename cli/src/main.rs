@@ -45,7 +45,8 @@ struct PipelineArgs {
     /// Override the pipeline's seed.
     #[arg(long)]
     seed: Option<u64>,
-    /// Compute this step even if no export needs it (repeatable).
+    /// Compute this step even if no export needs it (repeatable). Targets are added to what
+    /// the exports need: every export is still written, with the steps it depends on.
     #[arg(long = "target", value_name = "STEP")]
     targets: Vec<String>,
 }
@@ -104,6 +105,21 @@ enum Command {
     Study(Box<grainpipe_sweep::StudyArgs>),
     /// Write a self-contained HTML report of a run or a sweep directory.
     Report(grainpipe_report::ReportArgs),
+    /// Show the step cache (size, largest and least recently used entries) or prune it.
+    Cache {
+        #[command(subcommand)]
+        action: Option<CacheAction>,
+        /// Cache directory.
+        #[arg(long, default_value = ".grainpipe-cache", global = true)]
+        cache_dir: PathBuf,
+    },
+    /// Print a shell completion script: `pipe completions bash > /etc/bash_completion.d/pipe`.
+    Completions {
+        /// The shell to complete for.
+        shell: clap_complete::Shell,
+    },
+    /// Print the manual page (roff) to standard output: `pipe man | man -l -`.
+    Man,
 }
 
 fn main() -> ExitCode {
@@ -164,10 +180,17 @@ fn main() -> ExitCode {
             &cli.plugin_dirs,
         ),
         Command::Report(args) => grainpipe_report::report_command(args, &registry),
+        Command::Cache { action, cache_dir } => cache_command(action, &cache_dir),
         Command::Schema => {
             print!("{}", json_text(&describe::pipeline_schema(&registry)));
             ExitCode::SUCCESS
         }
+        Command::Completions { shell } => {
+            let mut cmd = <Cli as clap::CommandFactory>::command();
+            clap_complete::generate(shell, &mut cmd, "pipe", &mut std::io::stdout());
+            ExitCode::SUCCESS
+        }
+        Command::Man => grainpipe_cli::print_man(<Cli as clap::CommandFactory>::command()),
         Command::Validate { pipeline } => {
             let (doc, plan) = match load_and_plan(&pipeline, &mut registry, &mut loader) {
                 Ok(x) => x,
@@ -255,11 +278,15 @@ fn main() -> ExitCode {
                 }
                 eprintln!("\ninterrupted: stopping at the next checkpoint (Ctrl-C again to abort)");
             });
-            let mut observer = TerminalObserver::new(quiet, cancel);
             let opts = RunOptions {
                 cache_dir: (!no_cache).then_some(cache_dir),
             };
+            let mut observer =
+                TerminalObserver::new(quiet, cancel).with_cache_dir(opts.cache_dir.clone());
             let result = engine::execute(&doc, &plan, &opts, &mut observer);
+            if let Some(dir) = &opts.cache_dir {
+                cap_cache(dir, &plan, quiet);
+            }
             if !quiet || result.is_err() {
                 eprint!("\n{}", observer.table());
             }
@@ -343,28 +370,138 @@ struct YamlDiagnostic {
     help: Option<String>,
 }
 
-/// Prints a pipeline error with its file:line:col and the YAML snippet, and gives its exit code.
+/// Prints every diagnostic of a pipeline error with its file:line:col and snippet (the
+/// `--set` text for an override), and gives the exit code. An interrupted run is one line.
 fn report(e: &PipelineError) -> ExitCode {
-    let source = std::fs::read_to_string(&e.file).ok();
-    match (e.loc, source) {
-        (Some(loc), Some(src)) if loc.offset < src.len() => {
-            let d = YamlDiagnostic {
-                message: e.message.clone(),
-                src: miette::NamedSource::new(e.file.display().to_string(), src),
-                span: (loc.offset, loc.len).into(),
-                help: e.help.clone(),
-            };
-            let handler = miette::GraphicalReportHandler::new_themed(
-                miette::GraphicalTheme::unicode_nocolor(),
-            )
+    if e.class == grainpipe_core::pipeline::ErrorClass::Interrupted {
+        eprintln!("{}", e.message);
+        return ExitCode::from(e.exit_code() as u8);
+    }
+    let handler =
+        miette::GraphicalReportHandler::new_themed(miette::GraphicalTheme::unicode_nocolor())
             .with_context_lines(1);
-            let mut out = String::new();
-            match handler.render_report(&mut out, &d) {
-                Ok(()) => eprint!("{out}"),
-                Err(_) => eprintln!("error: {e}"),
+    let mut files: std::collections::HashMap<PathBuf, Option<String>> = Default::default();
+    let count = e.all().count();
+    for one in e.all() {
+        let source = match &one.source_text {
+            Some(t) => Some(t.clone()),
+            None => files
+                .entry(one.file.clone())
+                .or_insert_with(|| std::fs::read_to_string(&one.file).ok())
+                .clone(),
+        };
+        let mut out = String::new();
+        let rendered = match (one.loc, source) {
+            (Some(loc), Some(src)) if loc.offset <= src.len() => {
+                let len = loc.len.min(src.len() - loc.offset);
+                let d = YamlDiagnostic {
+                    message: one.message.clone(),
+                    src: miette::NamedSource::new(one.file.display().to_string(), src),
+                    span: (loc.offset, len).into(),
+                    help: one.help.clone(),
+                };
+                handler.render_report(&mut out, &d).is_ok()
             }
+            _ => false,
+        };
+        if rendered {
+            eprint!("{out}");
+        } else {
+            let mut plain = one.clone();
+            plain.related.clear();
+            eprintln!("error: {plain}");
         }
-        _ => eprintln!("error: {e}"),
+    }
+    if count > 1 {
+        eprintln!("{count} errors in {}", e.file.display());
     }
     ExitCode::from(e.exit_code() as u8)
+}
+
+#[derive(Subcommand)]
+enum CacheAction {
+    /// Delete entries: the least recently used beyond --max-size, those unused for longer
+    /// than --older-than, or --all. Entries go one by one, each with a single unlink.
+    Prune {
+        /// Keep at most this much (e.g. `2GB`, `500MiB`).
+        #[arg(long, value_name = "SIZE")]
+        max_size: Option<String>,
+        /// Delete entries not used for this long (e.g. `7d`, `12h`).
+        #[arg(long, value_name = "AGE")]
+        older_than: Option<String>,
+        /// Delete every entry.
+        #[arg(long)]
+        all: bool,
+    },
+}
+
+fn cache_command(action: Option<CacheAction>, dir: &std::path::Path) -> ExitCode {
+    use grainpipe_core::cache;
+    let result = match action {
+        None => cache::describe(dir, 5).map_err(|e| e.to_string()),
+        Some(CacheAction::Prune {
+            max_size,
+            older_than,
+            all,
+        }) => (|| {
+            let rule = cache::PruneRule {
+                max_size: max_size.as_deref().map(cache::parse_size).transpose()?,
+                older_than: older_than.as_deref().map(cache::parse_age).transpose()?,
+                all,
+            };
+            if rule.max_size.is_none() && rule.older_than.is_none() && !rule.all {
+                return Err("say what to prune: --max-size SIZE, --older-than AGE or --all".into());
+            }
+            let r = cache::prune(dir, &rule, &[]).map_err(|e| format!("{}: {e}", dir.display()))?;
+            Ok(format!(
+                "removed {} entries ({}); {} left ({})\n",
+                r.removed,
+                engine::human_bytes(r.freed),
+                r.kept,
+                engine::human_bytes(r.kept_size)
+            ))
+        })(),
+    };
+    match result {
+        Ok(text) => {
+            print!("{text}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+/// Applies the cache size cap after a run, sparing this run's entries.
+fn cap_cache(dir: &std::path::Path, plan: &engine::Plan, quiet: bool) {
+    use grainpipe_core::cache;
+    let cap = match cache::default_max_size() {
+        Ok(Some(cap)) => cap,
+        Ok(None) => return,
+        Err(e) => {
+            eprintln!("warning: cache not capped: {e}");
+            return;
+        }
+    };
+    let keep: Vec<String> = plan
+        .order
+        .iter()
+        .filter_map(|&i| plan.steps[i].as_ref().map(|s| s.cache_key.clone()))
+        .collect();
+    let rule = cache::PruneRule {
+        max_size: Some(cap),
+        ..Default::default()
+    };
+    match cache::prune(dir, &rule, &keep) {
+        Ok(r) if r.removed > 0 && !quiet => eprintln!(
+            "cache: removed {} least recently used entries ({}) to stay under {}",
+            r.removed,
+            engine::human_bytes(r.freed),
+            engine::human_bytes(cap)
+        ),
+        Ok(_) => {}
+        Err(e) => eprintln!("warning: cache not capped: {e}"),
+    }
 }

@@ -7,7 +7,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 /// The system allocator, counting live and peak bytes so each step's peak memory can be
@@ -58,6 +58,45 @@ struct StepReporter {
     start: Instant,
     quiet: bool,
     cancel: Arc<AtomicBool>,
+    /// The "running STEP (stage)" line, when it is held back until the step shows it is
+    /// computing (see [`TerminalObserver::step_started`]).
+    announce: Arc<Mutex<Option<String>>>,
+    /// The furthest fraction shown so far, as (done, total).
+    shown: Mutex<(u64, u64)>,
+}
+
+impl StepReporter {
+    fn announce(&self) {
+        let line = self
+            .announce
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take();
+        if let Some(line) = line {
+            self.bar.suspend(|| eprintln!("{line}"));
+        }
+    }
+}
+
+/// The position to show for a report of `done` of `total` after having shown `shown`: the
+/// report itself unless it is behind what was shown; a bar never moves back, even when a
+/// stage re-reports with another total.
+fn forward(shown: (u64, u64), done: u64, total: u64) -> (u64, u64) {
+    let (sd, st) = shown;
+    if total == 0 || st == 0 {
+        return if total == st {
+            (done.max(sd), total)
+        } else {
+            (done, total)
+        };
+    }
+    // Compare done/total with sd/st without rounding: done * st against sd * total.
+    if (done as u128) * (st as u128) >= (sd as u128) * (total as u128) {
+        (done, total)
+    } else {
+        let at_least = ((sd as u128) * (total as u128)).div_ceil(st as u128);
+        (at_least.min(total as u128) as u64, total)
+    }
 }
 
 impl Reporter for StepReporter {
@@ -65,6 +104,12 @@ impl Reporter for StepReporter {
         if self.quiet {
             return;
         }
+        self.announce();
+        let (done, total) = {
+            let mut shown = self.shown.lock().unwrap_or_else(|p| p.into_inner());
+            *shown = forward(*shown, done, total);
+            *shown
+        };
         if self.bar.is_hidden() && self.start.elapsed() > Duration::from_secs(1) {
             self.bar.set_draw_target(ProgressDrawTarget::stderr());
         }
@@ -75,8 +120,14 @@ impl Reporter for StepReporter {
     }
     fn message(&self, level: Level, text: &str) {
         match level {
-            Level::Warn => self.bar.suspend(|| eprintln!("warning: {text}")),
-            Level::Info if !self.quiet => self.bar.suspend(|| eprintln!("  {text}")),
+            Level::Warn => {
+                self.announce();
+                self.bar.suspend(|| eprintln!("warning: {text}"))
+            }
+            Level::Info if !self.quiet => {
+                self.announce();
+                self.bar.suspend(|| eprintln!("  {text}"))
+            }
             Level::Info => {}
         }
     }
@@ -109,6 +160,10 @@ pub struct TerminalObserver {
     pub rows: Vec<Row>,
     base: usize,
     written: Vec<std::path::PathBuf>,
+    /// The run's cache directory, to tell a step that will be served from the cache.
+    cache_dir: Option<std::path::PathBuf>,
+    /// The held-back "running" line of the current step, shared with its reporter.
+    announce: Arc<Mutex<Option<String>>>,
 }
 
 impl TerminalObserver {
@@ -119,7 +174,16 @@ impl TerminalObserver {
             rows: Vec::new(),
             base: 0,
             written: Vec::new(),
+            cache_dir: None,
+            announce: Arc::new(Mutex::new(None)),
         }
+    }
+
+    /// The cache directory the run uses (`RunOptions::cache_dir`): a step with an entry
+    /// there prints "cached STEP" instead of "running STEP".
+    pub fn with_cache_dir(mut self, dir: Option<std::path::PathBuf>) -> Self {
+        self.cache_dir = dir;
+        self
     }
 
     /// The end-of-run table.
@@ -179,14 +243,31 @@ impl Observer for TerminalObserver {
             .progress_chars("=> "),
         );
         bar.set_prefix(step.id.clone());
-        if !self.quiet {
-            eprintln!("running {} ({})", step.id, step.stage.info().id);
-        }
+        let line = format!("running {} ({})", step.id, step.stage.info().id);
+        // The engine tells whether a step came from the cache only once it has finished.
+        // A step with a cache entry holds its "running" line back: it prints "cached" when
+        // served, or "running" as soon as it shows it computes (a progress report, or the
+        // warning that the entry was refused).
+        let held = if self.quiet {
+            None
+        } else if self
+            .cache_dir
+            .as_deref()
+            .is_some_and(|d| has_cache_entry(d, &step.cache_key))
+        {
+            Some(line)
+        } else {
+            eprintln!("{line}");
+            None
+        };
+        *self.announce.lock().unwrap_or_else(|p| p.into_inner()) = held;
         Box::new(StepReporter {
             bar,
             start: Instant::now(),
             quiet: self.quiet,
             cancel: self.cancel.clone(),
+            announce: self.announce.clone(),
+            shown: Mutex::new((0, 0)),
         })
     }
 
@@ -200,6 +281,18 @@ impl Observer for TerminalObserver {
             peak_heap_bytes: heap,
             cached: stats.from_cache,
         });
+        let held = self
+            .announce
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .take();
+        if let Some(line) = held {
+            if stats.from_cache {
+                eprintln!("cached {} ({})", step.id, step.stage.info().id);
+            } else {
+                eprintln!("{line}");
+            }
+        }
     }
 
     fn exported(&mut self, path: &Path) {
@@ -207,5 +300,32 @@ impl Observer for TerminalObserver {
         if !self.quiet {
             eprintln!("  wrote {}", path.display());
         }
+    }
+}
+
+/// Whether the cache holds an entry for `key` (a stale or damaged entry is refused by the
+/// engine, which then warns: the held-back line prints with the warning).
+fn has_cache_entry(dir: &Path, key: &str) -> bool {
+    grainpipe_core::cache::path(dir, key).is_file()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::forward;
+
+    #[test]
+    fn bar_never_moves_back() {
+        // A plain advance is shown as reported.
+        assert_eq!(forward((0, 0), 3, 10), (3, 10));
+        assert_eq!(forward((3, 10), 7, 10), (7, 10));
+        // A report behind the shown one keeps the shown position.
+        assert_eq!(forward((7, 10), 2, 10), (7, 10));
+        // A new total keeps the shown fraction: 700/1000 shown, 1/4 reported -> 3 of 4
+        // (the smallest position not below 70 %).
+        assert_eq!(forward((700, 1000), 1, 4), (3, 4));
+        // Ahead with a new total: shown as reported.
+        assert_eq!(forward((1, 4), 900, 1000), (900, 1000));
+        // Unknown totals: counts only go up.
+        assert_eq!(forward((5, 0), 2, 0), (5, 0));
     }
 }

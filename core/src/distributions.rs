@@ -616,6 +616,107 @@ pub fn ks_critical_value(n: usize, alpha: f64) -> f64 {
     (-(alpha / 2.0).ln() / 2.0).sqrt() / (n.max(1) as f64).sqrt()
 }
 
+/// A drawn sample checked against the law it was meant to follow, with what explains a
+/// failure: draws rejected by the caller (a sphere that does not fit, a grain too large) and
+/// an upper size limit that cut the law's tail. Rejections and limits bias a sample in a way
+/// the KS distance alone does not explain to a user; the warning says why and by how much
+/// the mean moved.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SampleCheck {
+    pub n: usize,
+    /// KS distance of the sample against the law.
+    pub ks: f64,
+    /// 5 % critical value for `n` independent draws.
+    pub critical: f64,
+    /// Mean of the law and of the sample [m].
+    pub mean_law: f64,
+    pub mean_drawn: f64,
+    /// Draws the caller rejected, out of `draws` made.
+    pub rejected: u64,
+    pub draws: u64,
+    /// An upper size limit [m] and the law's probability mass above it.
+    pub limit: Option<(f64, f64)>,
+}
+
+impl SampleCheck {
+    pub fn new(samples: &[f64], law: &SizeDistribution, rejected: u64, draws: u64) -> Self {
+        let n = samples.len();
+        SampleCheck {
+            n,
+            ks: ks_distance(samples, law),
+            critical: ks_critical_value(n, 0.05),
+            mean_law: law.mean(),
+            mean_drawn: samples.iter().sum::<f64>() / n.max(1) as f64,
+            rejected,
+            draws,
+            limit: None,
+        }
+    }
+
+    pub fn with_limit(mut self, limit: f64, mass_above: f64) -> Self {
+        if mass_above > 0.0 {
+            self.limit = Some((limit, mass_above));
+        }
+        self
+    }
+
+    pub fn passes(&self) -> bool {
+        self.n == 0 || self.ks <= self.critical
+    }
+
+    /// Relative change of the mean, `mean_drawn / mean_law - 1`.
+    pub fn mean_shift(&self) -> f64 {
+        self.mean_drawn / self.mean_law - 1.0
+    }
+
+    /// The warning for a sample that fails the test (`None` when it passes); `what` names
+    /// the sample ("radii of the unit brick").
+    pub fn warning(&self, what: &str) -> Option<String> {
+        if self.passes() {
+            return None;
+        }
+        let mut why = Vec::new();
+        if self.rejected > 0 {
+            let side = if self.mean_shift() < 0.0 {
+                "large draws were rejected more often than small ones"
+            } else {
+                "small draws were rejected more often than large ones"
+            };
+            why.push(format!(
+                "{:.0} % of the draws ({} of {}) were rejected and {side}",
+                100.0 * self.rejected as f64 / self.draws.max(1) as f64,
+                self.rejected,
+                self.draws
+            ));
+        }
+        if let Some((x, mass)) = self.limit {
+            why.push(format!(
+                "the size limit {x:.4e} m cut the law's tail above it ({:.3} % of its mass)",
+                100.0 * mass
+            ));
+        }
+        if why.is_empty() {
+            why.push(
+                "no draw was rejected and no limit applies: the sizes were not drawn \
+                 independently from this law"
+                    .into(),
+            );
+        }
+        Some(format!(
+            "{what} fail the Kolmogorov-Smirnov test against the requested law: distance \
+             {:.3} > critical {:.3} (5 %, n = {}), because {}; the mean moved from {:.4e} m to \
+             {:.4e} m ({:+.1} %)",
+            self.ks,
+            self.critical,
+            self.n,
+            why.join(", and "),
+            self.mean_law,
+            self.mean_drawn,
+            100.0 * self.mean_shift()
+        ))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -759,6 +860,45 @@ mod tests {
             max: None,
         };
         assert!((n.mean() / 10e-6 - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn sample_check_explains_a_ks_failure_by_rejected_large_draws() {
+        // Draws of the default Weibull above 16 um are rejected (as a too-small room rejects
+        // large spheres). The kept sample then follows the law truncated at 16 um, whose mean
+        // the law computes independently (quadrature of 1 - F): the reported mean must match
+        // it within 4 standard errors, the rejected share must be P(X > 16 um) within 4
+        // binomial standard errors, and the KS distance must be far above the critical value.
+        let law = weibull();
+        let lim = 16e-6;
+        let all = draws(&law, 20_000, 3);
+        let kept: Vec<f64> = all.iter().copied().filter(|&x| x <= lim).collect();
+        let rejected = (all.len() - kept.len()) as u64;
+        let c = SampleCheck::new(&kept, &law, rejected, all.len() as u64);
+        let p_rej = 1.0 - law.cdf(lim);
+        let se_p = (p_rej * (1.0 - p_rej) / all.len() as f64).sqrt();
+        assert!((rejected as f64 / all.len() as f64 - p_rej).abs() < 4.0 * se_p);
+        let trunc = SizeDistribution::Weibull {
+            scale: um(15.7),
+            shape: 3.55,
+            min: None,
+            max: Some(Q::new(lim)),
+        };
+        let sd = (kept.iter().map(|x| (x - c.mean_drawn).powi(2)).sum::<f64>() / kept.len() as f64)
+            .sqrt();
+        let se = sd / (kept.len() as f64).sqrt();
+        assert!((c.mean_drawn - trunc.mean()).abs() < 4.0 * se, "{c:?}");
+        assert!((c.mean_shift() - (trunc.mean() / law.mean() - 1.0)).abs() < 4.0 * se / law.mean());
+        assert!(!c.passes() && c.ks > 5.0 * c.critical, "{c:?}");
+        let w = c.warning("radii").unwrap();
+        assert!(w.contains("large draws were rejected"), "{w}");
+        assert!(
+            w.contains(&format!("{:+.1} %", 100.0 * c.mean_shift())),
+            "{w}"
+        );
+        // The untouched sample passes and gives no warning.
+        let c2 = SampleCheck::new(&all[..2000], &law, 0, 2000);
+        assert!(c2.passes() && c2.warning("radii").is_none(), "{c2:?}");
     }
 
     #[test]

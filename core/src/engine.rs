@@ -2,7 +2,8 @@
 //! [`Plan`] (every stage preflighted before anything runs), then executes only the steps the
 //! exports or targets need, with a content-addressed cache.
 
-use crate::model::{Artifact, ArtifactMeta, Provenance};
+use crate::cache;
+use crate::model::Provenance;
 use crate::pipeline::{Loc, PipelineDoc, PipelineError, PortRef};
 use crate::registry::{closest, Exporter, Registry};
 use crate::stage::{
@@ -49,6 +50,8 @@ pub struct PlannedExport {
     pub port: String,
     pub path: PathBuf,
     pub exporter: Arc<dyn Exporter>,
+    /// Every option the format declares: the export's `with:` value or the default.
+    pub options: crate::registry::ExportOptions,
     pub loc: Loc,
 }
 
@@ -83,23 +86,49 @@ fn did_you_mean(s: Option<String>) -> Option<String> {
 }
 
 /// Resolves and preflights a pipeline. No stage runs and nothing large is allocated.
+///
+/// Every phase collects its errors and later phases go on with what is still sound, so the
+/// returned error lists every independent fault of the file at once (see
+/// [`PipelineError::related`]). A step that failed a phase is skipped by the later ones, and
+/// so are the steps that depend on it: their errors would only echo the first.
 pub fn plan(
     doc: &PipelineDoc,
     registry: &Registry,
     opts: &PlanOptions,
 ) -> Result<Plan, PipelineError> {
-    let n = doc.steps.len();
-    if n == 0 {
+    if doc.steps.is_empty() {
         return Err(PipelineError::input(
             &doc.file,
             None,
             "the pipeline has no stages",
         ));
     }
-    // Unique step ids.
+    let mut errs = Vec::new();
+    check_ids(doc, &mut errs);
+    let resolved = resolve_stages(doc, registry, &mut errs);
+    let wiring = wire_steps(doc, &resolved.stages, &mut errs);
+    let order = topological_order(doc, &wiring.wires, &mut errs);
+    let exports = plan_exports(doc, registry, &resolved.stages, &mut errs);
+    let needed = needed_steps(doc, opts, &exports, &wiring.wires, &mut errs);
+    let (steps, exec_order, memory) =
+        preflight_steps(doc, &resolved, &wiring, &order, &needed, &mut errs);
+    check_export_outputs(doc, &steps, &exports, &mut errs);
+    check_memory(doc, opts, memory, &mut errs);
+    PipelineError::collect(errs)?;
+    Ok(Plan {
+        seed: doc.seed,
+        steps,
+        order: exec_order,
+        exports,
+        memory_bytes: memory,
+    })
+}
+
+/// Step ids are unique and contain no `.` (which separates step and port).
+fn check_ids(doc: &PipelineDoc, errs: &mut Vec<PipelineError>) {
     for (i, s) in doc.steps.iter().enumerate() {
         if let Some(prev) = doc.steps[..i].iter().find(|p| p.id == s.id) {
-            return Err(err(
+            errs.push(err(
                 doc,
                 s.id_loc,
                 format!(
@@ -109,67 +138,125 @@ pub fn plan(
             ));
         }
         if s.id.contains('.') {
-            return Err(err(
+            errs.push(err(
                 doc,
                 s.id_loc,
                 format!("step id `{}` must not contain `.`", s.id),
             ));
         }
     }
-    // Stages and parameters.
-    let mut stages: Vec<Arc<dyn Stage>> = Vec::with_capacity(n);
-    let mut origins: Vec<String> = Vec::with_capacity(n);
-    let mut params: Vec<serde_json::Value> = Vec::with_capacity(n);
+}
+
+/// Each step's stage and canonical parameters; `None` where they could not be had.
+struct Resolved {
+    stages: Vec<Option<Arc<dyn Stage>>>,
+    origins: Vec<String>,
+    params: Vec<Option<serde_json::Value>>,
+}
+
+/// Looks up every `use:` and normalizes the parameters of the steps whose stage exists.
+fn resolve_stages(
+    doc: &PipelineDoc,
+    registry: &Registry,
+    errs: &mut Vec<PipelineError>,
+) -> Resolved {
+    let n = doc.steps.len();
+    let mut r = Resolved {
+        stages: Vec::with_capacity(n),
+        origins: Vec::with_capacity(n),
+        params: Vec::with_capacity(n),
+    };
     for (i, s) in doc.steps.iter().enumerate() {
-        let reg = registry.stage(&s.uses).ok_or_else(|| {
-            err(doc, s.uses_loc, format!("unknown stage `{}`", s.uses)).with_help(
-                did_you_mean(registry.suggest_stage(&s.uses))
-                    .or(Some("`pipe list` shows every stage".into())),
-            )
-        })?;
+        let Some(reg) = registry.stage(&s.uses) else {
+            errs.push(
+                err(doc, s.uses_loc, format!("unknown stage `{}`", s.uses)).with_help(
+                    did_you_mean(registry.suggest_stage(&s.uses))
+                        .or(Some("`pipe list` shows every stage".into())),
+                ),
+            );
+            r.stages.push(None);
+            r.origins.push(String::new());
+            r.params.push(None);
+            continue;
+        };
         let stage = reg.stage.clone();
-        origins.push(reg.origin.clone());
-        let p = stage
-            .normalize_params(&serde_json::Value::Object(s.params.clone()))
-            .map_err(|e| stage_error(doc, i, &*stage, e))?;
-        stages.push(stage);
-        params.push(p);
+        let p = stage.normalize_params(&serde_json::Value::Object(s.params.clone()));
+        r.params.push(
+            p.map_err(|e| errs.push(stage_error(doc, i, &*stage, e)))
+                .ok(),
+        );
+        r.origins.push(reg.origin.clone());
+        r.stages.push(Some(stage));
     }
-    // Wires.
-    let mut wires: Vec<IndexMap<String, Wire>> = Vec::with_capacity(n);
+    r
+}
+
+/// The resolved input wires of every step, and whether all of a step's wiring is sound.
+struct Wiring {
+    wires: Vec<IndexMap<String, Wire>>,
+    sound: Vec<bool>,
+}
+
+/// Checks `in:`: ports exist, sources exist, kinds match, required inputs are connected.
+/// A step of an unknown stage is not checked (its ports are unknown), nor is an input from
+/// one (the unknown stage was reported already).
+fn wire_steps(
+    doc: &PipelineDoc,
+    stages: &[Option<Arc<dyn Stage>>],
+    errs: &mut Vec<PipelineError>,
+) -> Wiring {
+    let n = doc.steps.len();
+    let mut out = Wiring {
+        wires: vec![IndexMap::new(); n],
+        sound: vec![false; n],
+    };
     for (i, s) in doc.steps.iter().enumerate() {
-        let info = stages[i].info();
-        let mut w = IndexMap::new();
+        let Some(stage) = &stages[i] else { continue };
+        let info = stage.info();
+        let before = errs.len();
+        let mut silent_gap = false;
         for (port, r) in &s.inputs {
-            let spec = info.inputs.iter().find(|p| p.name == port).ok_or_else(|| {
+            let Some(spec) = info.inputs.iter().find(|p| p.name == port) else {
                 let names: Vec<&str> = info.inputs.iter().map(|p| p.name).collect();
-                err(
-                    doc,
-                    r.key_loc,
-                    format!("stage `{}` has no input `{port}`", info.id),
-                )
-                .with_help(
-                    did_you_mean(closest(port, names.iter().copied()))
-                        .or(Some(format!("its inputs are: {}", list_or_none(&names)))),
-                )
-            })?;
-            let (producer, out_port) = resolve_ref(doc, &stages, &r.source, r.value_loc)?;
+                errs.push(
+                    err(
+                        doc,
+                        r.key_loc,
+                        format!("stage `{}` has no input `{port}`", info.id),
+                    )
+                    .with_help(
+                        did_you_mean(closest(port, names.iter().copied()))
+                            .or(Some(format!("its inputs are: {}", list_or_none(&names)))),
+                    ),
+                );
+                continue;
+            };
+            let (producer, out_port) = match resolve_ref(doc, stages, &r.source, r.value_loc) {
+                Ok(Some(x)) => x,
+                Ok(None) => {
+                    silent_gap = true;
+                    continue;
+                }
+                Err(e) => {
+                    errs.push(e);
+                    continue;
+                }
+            };
             if producer == i {
-                return Err(err(
+                errs.push(err(
                     doc,
                     r.value_loc,
                     format!("step `{}` takes its own output", s.id),
                 ));
+                continue;
             }
             let out_kind = stages[producer]
-                .info()
-                .outputs
-                .iter()
-                .find(|p| p.name == out_port)
+                .as_ref()
+                .and_then(|st| st.info().outputs.iter().find(|p| p.name == out_port))
                 .map(|p| p.kind)
                 .expect("resolved port exists");
             if out_kind != spec.kind {
-                return Err(err(
+                errs.push(err(
                     doc,
                     r.value_loc,
                     format!(
@@ -177,8 +264,9 @@ pub fn plan(
                         s.id, spec.kind, r.source
                     ),
                 ));
+                continue;
             }
-            w.insert(
+            out.wires[i].insert(
                 port.clone(),
                 Wire {
                     producer,
@@ -187,8 +275,8 @@ pub fn plan(
             );
         }
         for spec in &info.inputs {
-            if !spec.optional && !w.contains_key(spec.name) {
-                return Err(err(
+            if !spec.optional && !s.inputs.contains_key(spec.name) {
+                errs.push(err(
                     doc,
                     s.id_loc,
                     format!(
@@ -198,100 +286,136 @@ pub fn plan(
                 ));
             }
         }
-        wires.push(w);
+        out.sound[i] = errs.len() == before && !silent_gap;
     }
-    let order = topological_order(doc, &wires)?;
-    // Exports.
-    let mut exports = Vec::new();
+    out
+}
+
+/// Resolves every export to its producer, format and options. An export of a step whose
+/// stage is unknown is skipped (reported already).
+fn plan_exports(
+    doc: &PipelineDoc,
+    registry: &Registry,
+    stages: &[Option<Arc<dyn Stage>>],
+    errs: &mut Vec<PipelineError>,
+) -> Vec<PlannedExport> {
+    let mut exports: Vec<PlannedExport> = Vec::new();
     for e in &doc.exports {
-        let (producer, port) = resolve_ref(doc, &stages, &e.from, e.from_loc)?;
-        let kind = stages[producer]
-            .info()
-            .outputs
-            .iter()
-            .find(|p| p.name == port)
-            .expect("port")
-            .kind;
-        let exporter = registry.exporter_for(e.format.as_deref(), &e.to);
-        let accepting: Vec<&str> = registry
-            .exporters()
-            .iter()
-            .filter(|x| x.accepts(kind))
-            .map(|x| x.name())
-            .collect();
-        let exporter = match exporter {
-            Some(x) if x.accepts(kind) => x,
-            Some(x) => {
-                return Err(err(
-                    doc,
-                    e.format_loc.unwrap_or(e.to_loc),
-                    format!("format `{}` cannot hold a {kind} (`{}`)", x.name(), e.from),
-                )
-                .with_help(Some(format!(
-                    "formats for a {kind}: {}",
-                    list_or_none(&accepting)
-                ))))
-            }
-            None => {
-                let what = e.format.clone().unwrap_or_else(|| {
-                    format!(
-                        "extension `.{}`",
-                        e.to.extension().and_then(|x| x.to_str()).unwrap_or("")
-                    )
-                });
-                return Err(err(
-                    doc,
-                    e.format_loc.unwrap_or(e.to_loc),
-                    format!("no exporter for {what}"),
-                )
-                .with_help(Some(format!(
-                    "formats for a {kind}: {}",
-                    list_or_none(&accepting)
-                ))));
+        let (producer, port) = match resolve_ref(doc, stages, &e.from, e.from_loc) {
+            Ok(Some(x)) => x,
+            Ok(None) => continue,
+            Err(x) => {
+                errs.push(x);
+                continue;
             }
         };
-        check_export_path(&e.to).map_err(|(m, help)| err(doc, e.to_loc, m).with_help(help))?;
-        if let Some(prev) = exports
-            .iter()
-            .find(|p: &&PlannedExport| same_path(&p.path, &e.to))
-        {
-            return Err(err(
-                doc,
-                e.to_loc,
-                format!(
-                    "`{}` is already the target of the export at line {}; the second would \
-                     overwrite the first",
-                    e.to.display(),
-                    prev.loc.line
-                ),
-            )
-            .with_help(Some("give each export its own file name".into())));
+        let kind = stages[producer]
+            .as_ref()
+            .and_then(|st| st.info().outputs.iter().find(|p| p.name == port))
+            .expect("resolved port exists")
+            .kind;
+        let Some(exporter) = export_format(doc, registry, e, kind, errs) else {
+            continue;
+        };
+        let before = errs.len();
+        if let Err((m, help)) = check_export_path(&e.to) {
+            errs.push(err(doc, e.to_loc, m).with_help(help));
+        } else if let Some(prev) = exports.iter().find(|p| same_path(&p.path, &e.to)) {
+            errs.push(
+                err(
+                    doc,
+                    e.to_loc,
+                    format!(
+                        "`{}` is already the target of the export at line {}; the second \
+                         would overwrite the first",
+                        e.to.display(),
+                        prev.loc.line
+                    ),
+                )
+                .with_help(Some("give each export its own file name".into())),
+            );
         }
-        exports.push(PlannedExport {
-            producer,
-            port,
-            path: e.to.clone(),
-            exporter,
-            loc: e.to_loc,
-        });
+        let options = export_options(doc, e, exporter.as_ref(), errs);
+        if let (Some(options), true) = (options, errs.len() == before) {
+            exports.push(PlannedExport {
+                producer,
+                port,
+                path: e.to.clone(),
+                exporter,
+                options,
+                loc: e.to_loc,
+            });
+        }
     }
-    // Which steps are needed.
+    exports
+}
+
+/// The writer of an export: by `format:` or by extension, and it must accept the kind.
+fn export_format(
+    doc: &PipelineDoc,
+    registry: &Registry,
+    e: &crate::pipeline::Export,
+    kind: crate::model::ArtifactKind,
+    errs: &mut Vec<PipelineError>,
+) -> Option<Arc<dyn Exporter>> {
+    let accepting: Vec<&str> = registry
+        .exporters()
+        .iter()
+        .filter(|x| x.accepts(kind))
+        .map(|x| x.name())
+        .collect();
+    let help = Some(format!(
+        "formats for a {kind}: {}",
+        list_or_none(&accepting)
+    ));
+    let loc = e.format_loc.unwrap_or(e.to_loc);
+    match registry.exporter_for(e.format.as_deref(), &e.to) {
+        Some(x) if x.accepts(kind) => Some(x),
+        Some(x) => {
+            errs.push(
+                err(
+                    doc,
+                    loc,
+                    format!("format `{}` cannot hold a {kind} (`{}`)", x.name(), e.from),
+                )
+                .with_help(help),
+            );
+            None
+        }
+        None => {
+            let what = e.format.clone().unwrap_or_else(|| {
+                format!(
+                    "extension `.{}`",
+                    e.to.extension().and_then(|x| x.to_str()).unwrap_or("")
+                )
+            });
+            errs.push(err(doc, loc, format!("no exporter for {what}")).with_help(help));
+            None
+        }
+    }
+}
+
+/// Steps upstream of the exports and `--target`s; every step when there are neither.
+fn needed_steps(
+    doc: &PipelineDoc,
+    opts: &PlanOptions,
+    exports: &[PlannedExport],
+    wires: &[IndexMap<String, Wire>],
+    errs: &mut Vec<PipelineError>,
+) -> Vec<bool> {
+    let n = doc.steps.len();
     let mut needed = vec![false; n];
     let mut roots: Vec<usize> = exports.iter().map(|e| e.producer).collect();
     for t in &opts.targets {
         match doc.step(t) {
             Some((i, _)) => roots.push(i),
-            None => {
-                return Err(PipelineError::input(
-                    &doc.file,
-                    None,
-                    format!("no step `{t}` to target"),
-                )
-                .with_help(did_you_mean(closest(
-                    t,
-                    doc.steps.iter().map(|s| s.id.as_str()),
-                ))))
-            }
+            None => errs.push(
+                PipelineError::input(&doc.file, None, format!("no step `{t}` to target"))
+                    .with_help(did_you_mean(closest(
+                        t,
+                        doc.steps.iter().map(|s| s.id.as_str()),
+                    ))),
+            ),
         }
     }
     if roots.is_empty() {
@@ -303,108 +427,215 @@ pub fn plan(
             roots.extend(wires[i].values().map(|w| w.producer));
         }
     }
-    // Preflight in execution order.
-    let mut planned: Vec<Option<PlannedStep>> = (0..n).map(|_| None).collect();
+    needed
+}
+
+/// Preflights the needed steps in execution order, passing each one's announced outputs
+/// downstream. Returns the planned steps, the execution order and the summed memory.
+fn preflight_steps(
+    doc: &PipelineDoc,
+    r: &Resolved,
+    wiring: &Wiring,
+    order: &[usize],
+    needed: &[bool],
+    errs: &mut Vec<PipelineError>,
+) -> (Vec<Option<PlannedStep>>, Vec<usize>, u64) {
+    let mut planned: Vec<Option<PlannedStep>> = (0..doc.steps.len()).map(|_| None).collect();
     let mut memory = 0u64;
     let mut exec_order = Vec::new();
-    for &i in &order {
-        if !needed[i] {
+    for &i in order {
+        let (Some(stage), Some(params), true, true) =
+            (&r.stages[i], &r.params[i], needed[i], wiring.sound[i])
+        else {
             continue;
-        }
+        };
         let s = &doc.steps[i];
+        let wires = &wiring.wires[i];
         let mut metas = InputMetas::new();
-        for (port, w) in &wires[i] {
-            let meta: ArtifactMeta = planned[w.producer]
-                .as_ref()
-                .and_then(|p| p.preflight.outputs.get(&w.port).cloned())
-                .ok_or_else(|| {
-                    err(
+        let mut upstream_failed = false;
+        for (port, w) in wires {
+            let Some(producer) = planned[w.producer].as_ref() else {
+                upstream_failed = true;
+                continue;
+            };
+            match producer.preflight.outputs.get(&w.port) {
+                Some(meta) => {
+                    metas.insert(port.clone(), meta.clone());
+                }
+                None => {
+                    upstream_failed = true;
+                    errs.push(err(
                         doc,
                         s.inputs[port].value_loc,
                         format!(
                             "step `{}` will not give output `{}` with these parameters",
                             doc.steps[w.producer].id, w.port
                         ),
-                    )
-                })?;
-            metas.insert(port.clone(), meta);
+                    ));
+                }
+            }
         }
-        let (pf, prepared) = stages[i]
-            .preflight(&params[i], &metas)
-            .map_err(|e| stage_error(doc, i, &*stages[i], e))?;
+        if upstream_failed {
+            continue;
+        }
+        let (pf, prepared) = match stage.preflight(params, &metas) {
+            Ok(x) => x,
+            Err(e) => {
+                errs.push(stage_error(doc, i, &**stage, e));
+                continue;
+            }
+        };
+        let input_files = match hash_input_files(&**stage, params) {
+            Ok(x) => x,
+            Err((key, m)) => {
+                errs.push(param_error(doc, i, &key, true, m));
+                continue;
+            }
+        };
         memory = memory.saturating_add(pf.memory_bytes);
         let seed = crate::derive_seed(doc.seed, s.id.as_bytes());
-        let input_files = hash_input_files(&*stages[i], &params[i]).map_err(|(key, m)| {
-            err(
-                doc,
-                s.param_locs.get(&key).copied().unwrap_or(s.uses_loc),
-                m,
-            )
-        })?;
-        let key = cache_key(
-            &*stages[i],
-            &params[i],
+        let info = stage.info();
+        let cache_key = crate::cache::key(
+            info.id,
+            info.version,
+            params,
             seed,
             &input_files,
-            &wires[i],
-            &planned,
+            wires.iter().map(|(port, w)| {
+                let producer = planned[w.producer].as_ref().expect("producer planned");
+                (port.as_str(), producer.cache_key.as_str(), w.port.as_str())
+            }),
         );
         planned[i] = Some(PlannedStep {
             index: i,
             id: s.id.clone(),
-            stage: stages[i].clone(),
-            params: params[i].clone(),
-            inputs: wires[i].clone(),
+            stage: stage.clone(),
+            params: params.clone(),
+            inputs: wires.clone(),
             preflight: pf,
             prepared,
             seed,
             input_files,
-            cache_key: key,
-            origin: origins[i].clone(),
+            cache_key,
+            origin: r.origins[i].clone(),
         });
         exec_order.push(i);
     }
-    for e in &exports {
-        let pf = &planned[e.producer]
-            .as_ref()
-            .expect("export producers are needed")
-            .preflight;
+    (planned, exec_order, memory)
+}
+
+/// Every export's port must be among what its producer's preflight announced.
+fn check_export_outputs(
+    doc: &PipelineDoc,
+    planned: &[Option<PlannedStep>],
+    exports: &[PlannedExport],
+    errs: &mut Vec<PipelineError>,
+) {
+    for e in exports {
+        let Some(p) = planned[e.producer].as_ref() else {
+            continue;
+        };
+        let pf = &p.preflight;
         if !pf.outputs.contains_key(&e.port) {
-            return Err(err(
-                doc,
-                e.loc,
-                format!(
-                    "step `{}` will not give output `{}` with these parameters",
-                    doc.steps[e.producer].id, e.port
-                ),
-            )
-            .with_help(Some(format!(
-                "it gives: {}",
-                pf.outputs
-                    .keys()
-                    .map(|k| format!("{}.{k}", doc.steps[e.producer].id))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ))));
+            errs.push(
+                err(
+                    doc,
+                    e.loc,
+                    format!(
+                        "step `{}` will not give output `{}` with these parameters",
+                        doc.steps[e.producer].id, e.port
+                    ),
+                )
+                .with_help(Some(format!(
+                    "it gives: {}",
+                    pf.outputs
+                        .keys()
+                        .map(|k| format!("{}.{k}", doc.steps[e.producer].id))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ))),
+            );
         }
     }
+}
+
+/// The summed preflight estimate against the memory available. With other errors the sum
+/// misses the failed steps, so it can only be too low: a refusal still holds.
+fn check_memory(doc: &PipelineDoc, opts: &PlanOptions, memory: u64, errs: &mut Vec<PipelineError>) {
     if let Some(limit) = opts.memory_limit {
         if memory > limit {
-            return Err(PipelineError::input(&doc.file, None, format!(
-                "the pipeline needs about {} of memory but {} is available",
-                human_bytes(memory),
-                human_bytes(limit)
-            ))
-            .with_help(Some("reduce the domain size or resolution (see `pipe validate` for the estimate per stage)".into())));
+            errs.push(
+                PipelineError::input(
+                    &doc.file,
+                    None,
+                    format!(
+                        "the pipeline needs about {} of memory but {} is available",
+                        human_bytes(memory),
+                        human_bytes(limit)
+                    ),
+                )
+                .with_help(Some(
+                    "reduce the domain size or resolution (see `pipe validate` for the \
+                     estimate per stage)"
+                        .into(),
+                )),
+            );
         }
     }
-    Ok(Plan {
-        seed: doc.seed,
-        steps: planned,
-        order: exec_order,
-        exports,
-        memory_bytes: memory,
-    })
+}
+
+/// An export's `with:` checked against its format's declared options, defaults filled in;
+/// `None` (with the errors pushed) when an option is unknown or refused.
+fn export_options(
+    doc: &PipelineDoc,
+    e: &crate::pipeline::Export,
+    exporter: &dyn Exporter,
+    errs: &mut Vec<PipelineError>,
+) -> Option<crate::registry::ExportOptions> {
+    let declared = exporter.options();
+    let names: Vec<&str> = declared.iter().map(|o| o.name).collect();
+    let mut unknown = false;
+    for key in e.options.keys() {
+        if !names.contains(&key.as_str()) {
+            let help = match crate::suggest::closest(key, names.iter().copied()) {
+                Some(s) => format!("did you mean `{s}`?"),
+                None => format!("options of `{}`: {}", exporter.name(), list_or_none(&names)),
+            };
+            errs.push(
+                err(
+                    doc,
+                    e.option_locs[key],
+                    format!("format `{}` has no option `{key}`", exporter.name()),
+                )
+                .with_help(Some(help)),
+            );
+            unknown = true;
+        }
+    }
+    if unknown {
+        return None;
+    }
+    let mut options = crate::registry::ExportOptions::new();
+    for o in &declared {
+        let v = e
+            .options
+            .get(o.name)
+            .cloned()
+            .unwrap_or_else(|| o.default.clone());
+        options.insert(o.name.to_string(), v);
+    }
+    match exporter.check_options(&options) {
+        Ok(()) => Some(options),
+        Err((key, message)) => {
+            let loc = e.option_locs.get(&key).copied().unwrap_or(e.to_loc);
+            errs.push(err(
+                doc,
+                loc,
+                format!("format `{}`, option `{key}`: {message}", exporter.name()),
+            ));
+            None
+        }
+    }
 }
 
 /// An export target must name a file: not empty, not a directory (`.`, `out/`, an existing
@@ -484,21 +715,19 @@ fn stage_error(doc: &PipelineDoc, i: usize, stage: &dyn Stage, e: StageError) ->
     let s = &doc.steps[i];
     let info = stage.info();
     match e {
-        StageError::UnknownParam { key, suggestion } => {
-            let loc = s.param_locs.get(&key).copied().unwrap_or(s.uses_loc);
-            err(
-                doc,
-                loc,
-                format!("step `{}` ({}): unknown parameter `{key}`", s.id, info.id),
-            )
-            .with_help(did_you_mean(suggestion).or(Some(format!(
-                "`pipe describe {}` lists its parameters",
-                info.id
-            ))))
-        }
+        StageError::UnknownParam { key, suggestion } => param_error(
+            doc,
+            i,
+            &key,
+            false,
+            format!("step `{}` ({}): unknown parameter `{key}`", s.id, info.id),
+        )
+        .with_help(did_you_mean(suggestion).or(Some(format!(
+            "`pipe describe {}` lists its parameters",
+            info.id
+        )))),
         StageError::InvalidParam { key, message } => {
             let top = key.split(['.', '[']).next().unwrap_or(&key).to_string();
-            let loc = s.param_locs.get(&top).copied().unwrap_or(s.uses_loc);
             let help = if message.starts_with("unknown field") {
                 did_you_mean(closest(&top, info.params.iter().map(|p| p.name))).or(Some(format!(
                     "`pipe describe {}` lists its parameters",
@@ -510,9 +739,11 @@ fn stage_error(doc: &PipelineDoc, i: usize, stage: &dyn Stage, e: StageError) ->
                     .find(|p| p.name == top)
                     .map(|p| format!("`{}`: {}{}", p.name, p.doc, unit_hint(&p.unit)))
             };
-            err(
+            param_error(
                 doc,
-                loc,
+                i,
+                &top,
+                true,
                 format!(
                     "step `{}` ({}): parameter `{key}`: {message}",
                     s.id, info.id
@@ -536,6 +767,27 @@ fn stage_error(doc: &PipelineDoc, i: usize, stage: &dyn Stage, e: StageError) ->
     }
 }
 
+/// An error about parameter `key` of step `i`, located where its value comes from: the last
+/// `--set` that changed it (its value, or its key when `at_value` is false), else the key in
+/// the file, else the step's `use:`.
+fn param_error(
+    doc: &PipelineDoc,
+    i: usize,
+    key: &str,
+    at_value: bool,
+    message: String,
+) -> PipelineError {
+    let s = &doc.steps[i];
+    match doc.override_of(&s.id, key) {
+        Some(o) => o.error(at_value, message),
+        None => err(
+            doc,
+            s.param_locs.get(key).copied().unwrap_or(s.uses_loc),
+            message,
+        ),
+    }
+}
+
 fn unit_hint(unit: &str) -> String {
     if unit.is_empty() || unit == "1" {
         String::new()
@@ -544,35 +796,39 @@ fn unit_hint(unit: &str) -> String {
     }
 }
 
-/// `step` or `step.port` to (producer index, port name).
+/// `step` or `step.port` to (producer index, port name); `Ok(None)` when the step exists but
+/// its stage is unknown (already reported, so its ports cannot be checked).
 fn resolve_ref(
     doc: &PipelineDoc,
-    stages: &[Arc<dyn Stage>],
+    stages: &[Option<Arc<dyn Stage>>],
     r: &PortRef,
     loc: Loc,
-) -> Result<(usize, String), PipelineError> {
+) -> Result<Option<(usize, String)>, PipelineError> {
     let (i, _) = doc.step(&r.step).ok_or_else(|| {
         err(doc, loc, format!("no step `{}` in this pipeline", r.step)).with_help(did_you_mean(
             closest(&r.step, doc.steps.iter().map(|s| s.id.as_str())),
         ))
     })?;
-    let outputs: Vec<&str> = stages[i].info().outputs.iter().map(|p| p.name).collect();
+    let Some(stage) = &stages[i] else {
+        return Ok(None);
+    };
+    let outputs: Vec<&str> = stage.info().outputs.iter().map(|p| p.name).collect();
     match &r.port {
-        Some(p) if outputs.contains(&p.as_str()) => Ok((i, p.clone())),
+        Some(p) if outputs.contains(&p.as_str()) => Ok(Some((i, p.clone()))),
         Some(p) => Err(err(
             doc,
             loc,
             format!(
                 "step `{}` ({}) has no output `{p}`",
                 r.step,
-                stages[i].info().id
+                stage.info().id
             ),
         )
         .with_help(
             did_you_mean(closest(p, outputs.iter().copied()).map(|o| format!("{}.{o}", r.step)))
                 .or(Some(format!("its outputs are: {}", list_or_none(&outputs)))),
         )),
-        None if outputs.len() == 1 => Ok((i, outputs[0].to_string())),
+        None if outputs.len() == 1 => Ok(Some((i, outputs[0].to_string()))),
         None => Err(err(
             doc,
             loc,
@@ -589,11 +845,13 @@ fn resolve_ref(
     }
 }
 
-/// Kahn's algorithm over the input wires; a cycle is reported with its members.
+/// Kahn's algorithm over the input wires; a cycle is reported with its members, and the
+/// order returned then holds only the steps outside it (and not downstream of it).
 fn topological_order(
     doc: &PipelineDoc,
     wires: &[IndexMap<String, Wire>],
-) -> Result<Vec<usize>, PipelineError> {
+    errs: &mut Vec<PipelineError>,
+) -> Vec<usize> {
     let n = wires.len();
     let mut indegree: Vec<usize> = wires.iter().map(|w| w.len()).collect();
     let mut consumers: Vec<Vec<usize>> = vec![Vec::new(); n];
@@ -621,23 +879,25 @@ fn topological_order(
             .map(|i| doc.steps[i].id.as_str())
             .collect();
         let first = (0..n).find(|&i| indegree[i] > 0).expect("cycle member");
-        return Err(err(
-            doc,
-            doc.steps[first].id_loc,
-            format!(
-                "the steps {} depend on each other in a cycle",
-                in_cycle
-                    .iter()
-                    .map(|s| format!("`{s}`"))
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            ),
-        )
-        .with_help(Some(
-            "a step's inputs must come from steps that do not need its outputs".into(),
-        )));
+        errs.push(
+            err(
+                doc,
+                doc.steps[first].id_loc,
+                format!(
+                    "the steps {} depend on each other in a cycle",
+                    in_cycle
+                        .iter()
+                        .map(|s| format!("`{s}`"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ),
+            )
+            .with_help(Some(
+                "a step's inputs must come from steps that do not need its outputs".into(),
+            )),
+        );
     }
-    Ok(order)
+    order
 }
 
 /// The content hash of every file or directory named by a parameter declared `file`
@@ -674,47 +934,6 @@ fn collect_paths(v: &serde_json::Value, out: &mut Vec<String>) {
         serde_json::Value::Object(m) => m.values().for_each(|x| collect_paths(x, out)),
         _ => {}
     }
-}
-
-fn cache_key(
-    stage: &dyn Stage,
-    params: &serde_json::Value,
-    seed: u64,
-    input_files: &[(String, String)],
-    wires: &IndexMap<String, Wire>,
-    planned: &[Option<PlannedStep>],
-) -> String {
-    let mut h = blake3::Hasher::new();
-    let info = stage.info();
-    h.update(info.id.as_bytes());
-    h.update(b"\0");
-    h.update(info.version.as_bytes());
-    h.update(b"\0");
-    h.update(params.to_string().as_bytes());
-    h.update(&seed.to_le_bytes());
-    for (path, hash) in input_files {
-        h.update(path.as_bytes());
-        h.update(b"#");
-        h.update(hash.as_bytes());
-        h.update(b";");
-    }
-    let mut inputs: Vec<_> = wires.iter().collect();
-    inputs.sort_by(|a, b| a.0.cmp(b.0));
-    for (port, w) in inputs {
-        h.update(port.as_bytes());
-        h.update(b"=");
-        h.update(
-            planned[w.producer]
-                .as_ref()
-                .expect("producer planned")
-                .cache_key
-                .as_bytes(),
-        );
-        h.update(b".");
-        h.update(w.port.as_bytes());
-        h.update(b";");
-    }
-    h.finalize().to_hex()[..32].to_string()
 }
 
 /// Memory the system can still give [bytes], from /proc/meminfo (Linux); `None` elsewhere.
@@ -778,66 +997,6 @@ pub struct RunResult {
     /// Outputs of every executed step, by step id.
     pub outputs: IndexMap<String, Arc<Outputs>>,
     pub stats: IndexMap<String, StepStats>,
-}
-
-/// Identifies the layout of cached artifacts: bump it whenever the serialized data model
-/// or the entry layout changes, so entries written by an older grainpipe are recomputed
-/// instead of misread. 2: field component conventions, bond attributes, collections.
-/// 3: a BLAKE3 checksum of (key, payload) after the magic.
-const CACHE_MAGIC: &[u8; 8] = b"GRPCACH3";
-
-fn cache_path(dir: &Path, key: &str) -> PathBuf {
-    dir.join(format!("{key}.bin"))
-}
-
-/// What reading a cache entry gave.
-enum CacheRead {
-    /// No entry (the normal miss), or one written by another grainpipe layout.
-    Miss,
-    Hit(Outputs),
-    /// An entry that exists but cannot be trusted; the reason is shown as a warning.
-    Corrupt(String),
-}
-
-/// The checksum covers the key too, so an entry copied onto another step's key is refused
-/// like a flipped bit, before its payload is even decoded.
-fn cache_checksum(key: &str, body: &[u8]) -> blake3::Hash {
-    let mut h = blake3::Hasher::new();
-    h.update(key.as_bytes());
-    h.update(b"\0");
-    h.update(body);
-    h.finalize()
-}
-
-fn cache_load(dir: &Path, key: &str) -> CacheRead {
-    let Ok(bytes) = std::fs::read(cache_path(dir, key)) else {
-        return CacheRead::Miss;
-    };
-    let Some(rest) = bytes.strip_prefix(CACHE_MAGIC.as_slice()) else {
-        return CacheRead::Miss;
-    };
-    if rest.len() < 32 {
-        return CacheRead::Corrupt("truncated entry".into());
-    }
-    let (sum, body) = rest.split_at(32);
-    if cache_checksum(key, body).as_bytes() != sum {
-        return CacheRead::Corrupt(
-            "checksum mismatch (damaged file, or another step's entry)".into(),
-        );
-    }
-    match postcard::from_bytes::<Vec<(String, Artifact)>>(body) {
-        Ok(v) => CacheRead::Hit(v.into_iter().collect()),
-        Err(e) => CacheRead::Corrupt(format!("undecodable payload: {e}")),
-    }
-}
-
-fn cache_store(dir: &Path, key: &str, outputs: &Outputs) -> Result<(), String> {
-    let v: Vec<(&String, &Artifact)> = outputs.iter().collect();
-    let body = postcard::to_stdvec(&v).map_err(|e| e.to_string())?;
-    let mut bytes = CACHE_MAGIC.to_vec();
-    bytes.extend_from_slice(cache_checksum(key, &body).as_bytes());
-    bytes.extend(body);
-    crate::fsutil::atomic_write_bytes(&cache_path(dir, key), &bytes)
 }
 
 /// A cache entry is used only if it holds exactly what the step's preflight announced
@@ -916,9 +1075,9 @@ pub fn execute(
         let cached = match opts
             .cache_dir
             .as_ref()
-            .map(|d| cache_load(d, &step.cache_key))
+            .map(|d| cache::load(d, &step.cache_key))
         {
-            Some(CacheRead::Hit(o)) => match check_cached(step, &o) {
+            Some(cache::CacheRead::Hit(o)) => match check_cached(step, &o) {
                 Ok(()) => Some(o),
                 Err(m) => {
                     reporter.message(
@@ -928,7 +1087,7 @@ pub fn execute(
                     None
                 }
             },
-            Some(CacheRead::Corrupt(m)) => {
+            Some(cache::CacheRead::Corrupt(m)) => {
                 reporter.message(
                     crate::stage::Level::Warn,
                     &format!(
@@ -938,7 +1097,7 @@ pub fn execute(
                 );
                 None
             }
-            Some(CacheRead::Miss) | None => None,
+            Some(cache::CacheRead::Miss) | None => None,
         };
         let from_cache = cached.is_some();
         let outputs = match cached {
@@ -955,18 +1114,39 @@ pub fn execute(
                             e,
                             StageError::InvalidParam { .. } | StageError::InvalidInput { .. }
                         ) && stats.is_empty();
-                        let cancelled = matches!(e, StageError::Cancelled);
-                        let mut pe = stage_error(doc, i, &*step.stage, e);
-                        if cancelled {
+                        if matches!(e, StageError::Cancelled) {
+                            // Not a fault of the file: no location, one line naming the step
+                            // (the steps before it are in the cache and `stats`).
+                            let mut pe = PipelineError::run(
+                                &doc.file,
+                                None,
+                                format!(
+                                    "interrupted during step `{}` after {:.1} s",
+                                    step.id,
+                                    start.elapsed().as_secs_f64()
+                                ),
+                            );
                             pe.class = crate::pipeline::ErrorClass::Interrupted;
-                        } else if !class_input {
+                            return pe;
+                        }
+                        let mut pe = stage_error(doc, i, &*step.stage, e);
+                        if !class_input {
                             pe.class = crate::pipeline::ErrorClass::Run;
                         }
                         pe
                     })?;
                 check_outputs(doc, i, step, &o)?;
                 if let Some(d) = &opts.cache_dir {
-                    if let Err(e) = cache_store(d, &step.cache_key, &o) {
+                    let header = cache::EntryHeader {
+                        step: step.id.clone(),
+                        stage: format!("{} {}", step.stage.info().id, step.stage.info().version),
+                        pipeline: doc.name.clone(),
+                        created: std::time::SystemTime::now()
+                            .duration_since(std::time::UNIX_EPOCH)
+                            .map(|d| d.as_secs())
+                            .unwrap_or(0),
+                    };
+                    if let Err(e) = cache::store(d, &step.cache_key, &header, &o) {
                         reporter.message(
                             crate::stage::Level::Warn,
                             &format!("cache not written: {e}"),
@@ -995,9 +1175,11 @@ pub fn execute(
                 )
             })?;
             let prov = provenance(doc, plan, step, &e.port, &timings);
-            e.exporter.write(artifact, &e.path, &prov).map_err(|m| {
-                PipelineError::run(&doc.file, Some(e.loc), format!("export failed: {m}"))
-            })?;
+            e.exporter
+                .write_with(artifact, &e.path, &prov, &e.options)
+                .map_err(|m| {
+                    PipelineError::run(&doc.file, Some(e.loc), format!("export failed: {m}"))
+                })?;
             observer.exported(&e.path);
         }
     }
@@ -1104,6 +1286,28 @@ fn provenance(
             .collect::<Vec<_>>()
             .join(", "),
     );
-    e.insert("pipeline_yaml".into(), doc.source.clone());
+    // The file as written when nothing was overridden (it keeps its comments); otherwise
+    // what actually ran, with the overrides listed next to it.
+    if doc.overrides.is_empty() && doc.seed == doc.file_seed {
+        e.insert("pipeline_yaml".into(), doc.source.clone());
+    } else {
+        e.insert("pipeline_yaml".into(), doc.effective_yaml());
+        if !doc.overrides.is_empty() {
+            e.insert(
+                "overrides".into(),
+                doc.overrides
+                    .iter()
+                    .map(|o| format!("--set {}", o.text))
+                    .collect::<Vec<_>>()
+                    .join("\n"),
+            );
+        }
+        if doc.seed != doc.file_seed {
+            e.insert(
+                "seed_override".into(),
+                format!("--seed {} (the file says {})", doc.seed, doc.file_seed),
+            );
+        }
+    }
     p
 }

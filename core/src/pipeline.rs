@@ -30,6 +30,36 @@ impl Loc {
             len: span.byte_len().unwrap_or(1).max(1) as usize,
         }
     }
+
+    /// A location known by line and column only (serde-saphyr's syntax errors carry no
+    /// byte span): the byte offset is found in `source`, so the snippet shows the fault and
+    /// not the first line of the file.
+    pub fn at(source: &str, line: u64, col: u64) -> Loc {
+        let mut offset = 0;
+        for (n, l) in source.split_inclusive('\n').enumerate() {
+            if n as u64 + 1 == line {
+                let chars = col.saturating_sub(1) as usize;
+                let within = l
+                    .char_indices()
+                    .nth(chars)
+                    .map(|(b, _)| b)
+                    .unwrap_or(l.trim_end_matches('\n').len());
+                offset += within;
+                break;
+            }
+            offset += l.len();
+        }
+        let len = source[offset.min(source.len())..]
+            .chars()
+            .next()
+            .map_or(1, |c| c.len_utf8());
+        Loc {
+            line,
+            col,
+            offset: offset.min(source.len()),
+            len,
+        }
+    }
 }
 
 /// How bad a pipeline error is, which decides the exit code.
@@ -52,6 +82,12 @@ pub struct PipelineError {
     pub message: String,
     /// "did you mean ..." or another hint.
     pub help: Option<String>,
+    /// Further independent errors found in the same check (preflight reports every fault of
+    /// a file at once); this error is the first of them in file order of the checks.
+    pub related: Vec<PipelineError>,
+    /// The text `loc` points into when it is not the content of `file` (a `--set`
+    /// assignment); `None` means: read `file`.
+    pub source_text: Option<String>,
 }
 
 impl PipelineError {
@@ -62,6 +98,8 @@ impl PipelineError {
             loc,
             message: message.into(),
             help: None,
+            related: Vec::new(),
+            source_text: None,
         }
     }
     pub fn run(file: &Path, loc: Option<Loc>, message: impl Into<String>) -> Self {
@@ -74,6 +112,23 @@ impl PipelineError {
         self.help = help;
         self
     }
+    /// One error carrying all of `errors` (the first as the main one); `Ok` when empty.
+    pub fn collect(mut errors: Vec<PipelineError>) -> Result<(), PipelineError> {
+        if errors.is_empty() {
+            return Ok(());
+        }
+        let mut first = errors.remove(0);
+        for mut e in errors {
+            let mut nested = std::mem::take(&mut e.related);
+            first.related.push(e);
+            first.related.append(&mut nested);
+        }
+        Err(first)
+    }
+    /// This error and every related one, in the order found.
+    pub fn all(&self) -> impl Iterator<Item = &PipelineError> {
+        std::iter::once(self).chain(self.related.iter())
+    }
     pub fn exit_code(&self) -> i32 {
         match self.class {
             ErrorClass::Input => 2,
@@ -83,8 +138,8 @@ impl PipelineError {
     }
 }
 
-impl fmt::Display for PipelineError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+impl PipelineError {
+    fn fmt_one(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self.loc {
             Some(l) => write!(
                 f,
@@ -98,6 +153,17 @@ impl fmt::Display for PipelineError {
         }
         if let Some(h) = &self.help {
             write!(f, "\n  help: {h}")?;
+        }
+        Ok(())
+    }
+}
+
+impl fmt::Display for PipelineError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.fmt_one(f)?;
+        for r in &self.related {
+            writeln!(f)?;
+            r.fmt_one(f)?;
         }
         Ok(())
     }
@@ -167,6 +233,9 @@ pub struct Export {
     pub to_loc: Loc,
     pub format: Option<String>,
     pub format_loc: Option<Loc>,
+    /// Writer options (`with:`) as written, with the location of each key.
+    pub options: serde_json::Map<String, serde_json::Value>,
+    pub option_locs: IndexMap<String, Loc>,
 }
 
 /// A parsed pipeline file.
@@ -181,6 +250,10 @@ pub struct PipelineDoc {
     pub exports: Vec<Export>,
     /// Plugin libraries or directories (`plugins:`), with their locations.
     pub plugins: Vec<(PathBuf, Loc)>,
+    /// The seed the file gives (`seed` may since have been overridden).
+    pub file_seed: u64,
+    /// The `--set` assignments applied, in order.
+    pub overrides: Vec<Override>,
 }
 
 #[derive(Deserialize)]
@@ -190,7 +263,7 @@ struct RawDoc {
     #[serde(default)]
     description: String,
     #[serde(default)]
-    seed: u64,
+    seed: Option<Spanned<serde_json::Value>>,
     stages: Vec<Spanned<RawStep>>,
     #[serde(default)]
     export: Vec<Spanned<RawExport>>,
@@ -217,12 +290,14 @@ struct RawExport {
     to: Spanned<String>,
     #[serde(default)]
     format: Option<Spanned<String>>,
+    #[serde(default, rename = "with")]
+    options: IndexMap<Spanned<String>, Spanned<serde_json::Value>>,
 }
 
 /// The keys a pipeline may use at each level, for suggestions on unknown keys.
 const DOC_KEYS: &[&str] = &["name", "description", "seed", "stages", "export", "plugins"];
 const STEP_KEYS: &[&str] = &["id", "use", "in", "with"];
-const EXPORT_KEYS: &[&str] = &["from", "to", "format"];
+const EXPORT_KEYS: &[&str] = &["from", "to", "format", "with"];
 
 impl PipelineDoc {
     pub fn load(path: &Path) -> Result<PipelineDoc, PipelineError> {
@@ -233,7 +308,22 @@ impl PipelineDoc {
 
     pub fn parse(path: &Path, source: String) -> Result<PipelineDoc, PipelineError> {
         let raw: RawDoc = serde_saphyr::from_str_with_options(&source, yaml_options())
-            .map_err(|e| yaml_error(path, &e))?;
+            .map_err(|e| yaml_error(path, &source, &e))?;
+        let seed = match &raw.seed {
+            None => 0,
+            Some(v) => v.value.as_u64().ok_or_else(|| {
+                let written = match &v.value {
+                    serde_json::Value::String(t) => format!("`{t}`"),
+                    other => format!("`{other}`"),
+                };
+                PipelineError::input(
+                    path,
+                    Some(Loc::of(v)),
+                    format!("seed must be a whole number between 0 and 2^64-1, not {written}"),
+                )
+                .with_help(Some("write e.g. `seed: 42`".into()))
+            })?,
+        };
         let mut steps = Vec::with_capacity(raw.stages.len());
         for s in raw.stages {
             let s = s.value;
@@ -269,7 +359,15 @@ impl PipelineDoc {
             .into_iter()
             .map(|e| {
                 let e = e.value;
+                let mut options = serde_json::Map::new();
+                let mut option_locs = IndexMap::new();
+                for (k, v) in e.options {
+                    option_locs.insert(k.value.clone(), Loc::of(&k));
+                    options.insert(k.value, v.value);
+                }
                 Export {
+                    options,
+                    option_locs,
                     from_loc: Loc::of(&e.from),
                     from: PortRef::parse(&e.from.value),
                     to_loc: Loc::of(&e.to),
@@ -284,7 +382,9 @@ impl PipelineDoc {
             source,
             name: raw.name,
             description: raw.description,
-            seed: raw.seed,
+            seed,
+            file_seed: seed,
+            overrides: Vec::new(),
             steps,
             exports,
             plugins: raw
@@ -309,31 +409,211 @@ impl PipelineDoc {
     }
 
     /// Applies a command-line override `step.key=value`; the value is read as YAML
-    /// (so `140 um` stays a unit string and `[1, 2]` a list).
+    /// (so `140 um` stays a unit string and `[1, 2]` a list). `step.key.field=value`
+    /// replaces one field of a mapping parameter (`pack.radius.value=30 um`), creating the
+    /// missing levels; whether the parameter may be a mapping is checked when planning, and
+    /// errors found then point at this assignment (see [`PipelineDoc::overrides`]).
     pub fn apply_override(&mut self, assignment: &str) -> Result<(), PipelineError> {
-        let cli = |m: String| PipelineError::input(Path::new("--set"), None, m);
-        let (lhs, value) = assignment
-            .split_once('=')
-            .ok_or_else(|| cli(format!("`{assignment}` is not of the form step.key=value")))?;
-        let (step_id, key) = lhs
-            .trim()
-            .split_once('.')
-            .ok_or_else(|| cli(format!("`{lhs}` is not of the form step.key")))?;
-        let suggestion =
-            crate::registry::closest(step_id, self.steps.iter().map(|s| s.id.as_str()));
-        let step = self
-            .steps
-            .iter_mut()
-            .find(|s| s.id == step_id)
-            .ok_or_else(|| {
-                cli(format!("no step `{step_id}` in {}", self.file.display()))
-                    .with_help(suggestion.map(|s| format!("did you mean `{s}`?")))
-            })?;
+        let at = |start: usize, len: usize, m: String| {
+            let mut e =
+                PipelineError::input(Path::new("--set"), Some(Override::loc(start, len)), m);
+            e.source_text = Some(assignment.to_string());
+            e
+        };
+        let Some(eq) = assignment.find('=') else {
+            return Err(at(
+                0,
+                assignment.len(),
+                format!("`{assignment}` is not of the form step.key=value"),
+            )
+            .with_help(Some("write e.g. `--set pack.volume_fraction=0.3`".into())));
+        };
+        let lhs = &assignment[..eq];
+        let lead = lhs.len() - lhs.trim_start().len();
+        let mut parts = Vec::new();
+        let mut pos = lead;
+        for seg in lhs.trim().split('.') {
+            parts.push((pos, seg));
+            pos += seg.len() + 1;
+        }
+        if parts.len() < 2 || parts.iter().any(|(_, p)| p.trim().is_empty()) {
+            return Err(at(
+                lead,
+                lhs.trim().len().max(1),
+                format!(
+                    "`{}` is not of the form step.key (or step.key.field)",
+                    lhs.trim()
+                ),
+            ));
+        }
+        let (step_pos, step_id) = parts[0];
+        let Some(step_index) = self.steps.iter().position(|s| s.id == step_id) else {
+            let suggestion =
+                crate::registry::closest(step_id, self.steps.iter().map(|s| s.id.as_str()));
+            return Err(at(
+                step_pos,
+                step_id.len(),
+                format!("no step `{step_id}` in {}", self.file.display()),
+            )
+            .with_help(suggestion.map(|s| format!("did you mean `{s}`?"))));
+        };
+        let value_text = &assignment[eq + 1..];
+        let value_pos = eq + 1 + (value_text.len() - value_text.trim_start().len());
         let value: serde_json::Value =
-            serde_saphyr::from_str_with_options(value.trim(), yaml_options())
-                .map_err(|e| cli(format!("value of `{lhs}` is not valid YAML: {e}")))?;
-        step.params.insert(key.to_string(), value);
+            serde_saphyr::from_str_with_options(value_text.trim(), yaml_options()).map_err(
+                |e| {
+                    at(
+                        value_pos,
+                        value_text.trim().len().max(1),
+                        format!("value of `{}` is not valid YAML: {e}", lhs.trim()),
+                    )
+                },
+            )?;
+        let path: Vec<String> = parts[1..].iter().map(|(_, p)| p.to_string()).collect();
+        let step = &mut self.steps[step_index];
+        let mut slot = step
+            .params
+            .entry(path[0].clone())
+            .or_insert(serde_json::Value::Null);
+        for (depth, field) in path.iter().enumerate().skip(1) {
+            if slot.is_null() {
+                *slot = serde_json::Value::Object(Default::default());
+            }
+            let map = match slot {
+                serde_json::Value::Object(map) => map,
+                other => {
+                    let (p, _) = parts[depth + 1];
+                    let head = parts[..depth + 1]
+                        .iter()
+                        .map(|(_, s)| *s)
+                        .collect::<Vec<_>>()
+                        .join(".");
+                    return Err(at(
+                        step_pos,
+                        p - step_pos - 1,
+                        format!("`{head}` is {other}, not a mapping: it has no field `{field}`"),
+                    )
+                    .with_help(Some(format!("set it as a whole: `--set {head}=...`"))));
+                }
+            };
+            slot = map.entry(field.clone()).or_insert(serde_json::Value::Null);
+        }
+        *slot = value;
+        let (key_pos, key) = parts[1];
+        self.overrides.push(Override {
+            text: assignment.to_string(),
+            step: step_id.to_string(),
+            key: key.to_string(),
+            key_loc: Override::loc(key_pos, lhs.trim_end().len() - key_pos),
+            value_loc: Override::loc(value_pos, value_text.trim().len().max(1)),
+        });
         Ok(())
+    }
+
+    /// The last override of parameter `key` of step `step`, if any: errors about that
+    /// parameter point at the override, not at the file.
+    pub fn override_of(&self, step: &str, key: &str) -> Option<&Override> {
+        self.overrides
+            .iter()
+            .rev()
+            .find(|o| o.step == step && o.key == key)
+    }
+
+    /// The pipeline as it runs: the file with every override and the seed applied, as YAML
+    /// (comments are not kept; the file itself is `source`).
+    pub fn effective_yaml(&self) -> String {
+        use serde_json::{json, Map, Value};
+        let steps: Vec<Value> = self
+            .steps
+            .iter()
+            .map(|s| {
+                let mut m = Map::new();
+                m.insert("id".into(), json!(s.id));
+                m.insert("use".into(), json!(s.uses));
+                if !s.inputs.is_empty() {
+                    let ins: Map<String, Value> = s
+                        .inputs
+                        .iter()
+                        .map(|(k, v)| (k.clone(), json!(v.source.to_string())))
+                        .collect();
+                    m.insert("in".into(), Value::Object(ins));
+                }
+                if !s.params.is_empty() {
+                    m.insert("with".into(), Value::Object(s.params.clone()));
+                }
+                Value::Object(m)
+            })
+            .collect();
+        let mut doc = Map::new();
+        doc.insert("name".into(), json!(self.name));
+        if !self.description.is_empty() {
+            doc.insert("description".into(), json!(self.description));
+        }
+        doc.insert("seed".into(), json!(self.seed));
+        doc.insert("stages".into(), Value::Array(steps));
+        if !self.exports.is_empty() {
+            let ex: Vec<Value> = self
+                .exports
+                .iter()
+                .map(|e| {
+                    let mut m = Map::new();
+                    m.insert("from".into(), json!(e.from.to_string()));
+                    m.insert("to".into(), json!(e.to.display().to_string()));
+                    if let Some(f) = &e.format {
+                        m.insert("format".into(), json!(f));
+                    }
+                    if !e.options.is_empty() {
+                        m.insert("with".into(), Value::Object(e.options.clone()));
+                    }
+                    Value::Object(m)
+                })
+                .collect();
+            doc.insert("export".into(), Value::Array(ex));
+        }
+        if !self.plugins.is_empty() {
+            let p: Vec<Value> = self
+                .plugins
+                .iter()
+                .map(|(p, _)| json!(p.display().to_string()))
+                .collect();
+            doc.insert("plugins".into(), Value::Array(p));
+        }
+        serde_saphyr::to_string(&Value::Object(doc)).unwrap_or_else(|e| format!("# {e}\n"))
+    }
+}
+
+/// One `--set` assignment as applied, with the places of its key and value in its text.
+#[derive(Clone, Debug)]
+pub struct Override {
+    /// `step.key=value` as given.
+    pub text: String,
+    pub step: String,
+    /// The top-level parameter it changes.
+    pub key: String,
+    pub key_loc: Loc,
+    pub value_loc: Loc,
+}
+
+impl Override {
+    fn loc(start: usize, len: usize) -> Loc {
+        Loc {
+            line: 1,
+            col: start as u64 + 1,
+            offset: start,
+            len: len.max(1),
+        }
+    }
+
+    /// An input error located in this assignment's text (`value` or key).
+    pub fn error(&self, at_value: bool, message: impl Into<String>) -> PipelineError {
+        let loc = if at_value {
+            self.value_loc
+        } else {
+            self.key_loc
+        };
+        let mut e = PipelineError::input(Path::new("--set"), Some(loc), message);
+        e.source_text = Some(self.text.clone());
+        e
     }
 }
 
@@ -344,8 +624,28 @@ fn yaml_options() -> serde_saphyr::Options {
     o
 }
 
-fn yaml_error(path: &Path, e: &serde_saphyr::Error) -> PipelineError {
-    let loc = e.location().map(Loc::from_location);
+fn yaml_error(path: &Path, source: &str, e: &serde_saphyr::Error) -> PipelineError {
+    let mut loc = e.location().filter(|l| l.line() > 0).map(|l| {
+        if l.span().byte_offset().is_some() {
+            Loc::from_location(l)
+        } else {
+            Loc::at(source, l.line(), l.column())
+        }
+    });
+    // The scanner reports a tab at the start of the token it was reading (often the line
+    // before); the fault is the tab itself.
+    if let Some(l) = loc.filter(|_| e.to_string().contains("found a tab")) {
+        if let Some(t) = source.get(l.offset..).and_then(|r| r.find('\t')) {
+            let at = l.offset + t;
+            let line = source[..at].matches('\n').count() as u64 + 1;
+            let col = source[..at]
+                .rsplit('\n')
+                .next()
+                .map_or(0, |p| p.chars().count()) as u64
+                + 1;
+            loc = Some(Loc::at(source, line, col));
+        }
+    }
     // serde-saphyr's Display includes a rendered snippet; keep the first line as the message.
     let full = e.to_string();
     let first = full
@@ -416,5 +716,59 @@ mod tests {
         assert_eq!(d.steps[0].params["flag"], serde_json::json!(true));
         let e = d.apply_override("aa.radius=1").unwrap_err();
         assert!(e.help.unwrap().contains("`a`"));
+    }
+
+    #[test]
+    fn syntax_errors_point_at_their_line_and_column() {
+        let tab = "name: t\nstages:\n  - id: a\n\tuse: packing.rsa\n";
+        let e = PipelineDoc::parse(Path::new("t.yaml"), tab.into()).unwrap_err();
+        let l = e.loc.unwrap();
+        assert_eq!((l.line, l.col), (4, 1), "{e}");
+        assert_eq!(&tab[l.offset..l.offset + 1], "\t", "{e}");
+        let open = "name: t\nstages:\n  - id: a\n    with:\n      size: [1, 2\n      x: 3\n";
+        let e = PipelineDoc::parse(Path::new("t.yaml"), open.into()).unwrap_err();
+        let l = e.loc.unwrap();
+        // Unclosed `[`: the scanner fails at the `:` of the next line's key.
+        assert_eq!((l.line, l.col), (6, 8), "{e}");
+        assert_eq!(&open[l.offset..l.offset + 1], ":", "{e}");
+        let seed = "name: t\nseed: forty\nstages: []\n";
+        let e = PipelineDoc::parse(Path::new("t.yaml"), seed.into()).unwrap_err();
+        assert_eq!(
+            e.message,
+            "seed must be a whole number between 0 and 2^64-1, not `forty`"
+        );
+        assert_eq!(e.loc.map(|l| (l.line, l.col)), Some((2, 7)), "{e}");
+    }
+
+    #[test]
+    fn nested_override_and_effective_yaml() {
+        let mut d = PipelineDoc::parse(Path::new("t.yaml"), GOOD.into()).unwrap();
+        d.apply_override("a.dist.value=30 um").unwrap();
+        assert_eq!(
+            d.steps[0].params["dist"],
+            serde_json::json!({"value": "30 um"})
+        );
+        let e = d.apply_override("a.dist.value.x=1").unwrap_err();
+        let l = e.loc.unwrap();
+        assert_eq!(
+            &e.source_text.as_deref().unwrap()[l.offset..l.offset + l.len],
+            "a.dist.value"
+        );
+        d.seed = 11;
+        let back = PipelineDoc::parse(Path::new("b.yaml"), d.effective_yaml()).unwrap();
+        assert_eq!(back.seed, 11);
+        assert_eq!(
+            back.steps[0].params["dist"],
+            serde_json::json!({"value": "30 um"})
+        );
+        assert_eq!(
+            back.steps[1].inputs["packing"].source.to_string(),
+            "a.packing"
+        );
+        assert_eq!(back.exports[0].to, PathBuf::from("out/x.vti"));
+        assert_eq!(
+            d.override_of("a", "dist").unwrap().text,
+            "a.dist.value=30 um"
+        );
     }
 }

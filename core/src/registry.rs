@@ -9,6 +9,20 @@ use indexmap::IndexMap;
 use std::path::Path;
 use std::sync::Arc;
 
+/// One option of an exporter, written under an export's `with:` (e.g. `compression: 0`).
+#[derive(Clone, Debug)]
+pub struct ExportOption {
+    pub name: &'static str,
+    /// Shown by `pipe describe FORMAT`.
+    pub doc: &'static str,
+    /// The value used when the export does not set the option.
+    pub default: serde_json::Value,
+}
+
+/// The options an export passes to its writer: every declared option, the export's value
+/// or else the declared default.
+pub type ExportOptions = serde_json::Map<String, serde_json::Value>;
+
 /// Writes artifacts of some kinds to one file format.
 pub trait Exporter: Send + Sync {
     /// Format name as written in YAML `format:` (e.g. `vti`, `vtkhdf`, `h5`, `nc`, `csv`).
@@ -24,6 +38,25 @@ pub trait Exporter: Send + Sync {
         path: &Path,
         provenance: &Provenance,
     ) -> Result<(), String>;
+    /// The options this format takes under an export's `with:`; none by default.
+    fn options(&self) -> Vec<ExportOption> {
+        Vec::new()
+    }
+    /// Checks option values at preflight (before any step runs). `options` holds every
+    /// declared option (defaults filled in). On error: the offending option and why.
+    fn check_options(&self, _options: &ExportOptions) -> Result<(), (String, String)> {
+        Ok(())
+    }
+    /// Writes with options; formats that declare options override this. Atomic as `write`.
+    fn write_with(
+        &self,
+        artifact: &Artifact,
+        path: &Path,
+        provenance: &Provenance,
+        _options: &ExportOptions,
+    ) -> Result<(), String> {
+        self.write(artifact, path, provenance)
+    }
 }
 
 /// A stage with where it came from (`built-in` or a plugin library path).

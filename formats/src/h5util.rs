@@ -11,15 +11,57 @@ fn vlu(s: &str) -> H5Result<VarLenUnicode> {
         .map_err(|e| hdf5_metno::Error::from(e.to_string()))
 }
 
-/// Creates a dataset of `shape` holding `data` (row-major, last index fastest).
+/// Deflate level the HDF5, VTKHDF and NetCDF writers use unless told otherwise: level 4
+/// gives nearly all of level 9's size on voxel images at a fraction of its time.
+pub const DEFAULT_DEFLATE: u8 = 4;
+
+/// Uncompressed bytes per chunk the chunk shapes aim at: HDF5's default chunk cache is
+/// 1 MiB, so a chunk is decompressed once per read of a z-slab, and small datasets are not
+/// split into chunks whose index outweighs them.
+const CHUNK_BYTES: usize = 1 << 20;
+
+/// Datasets smaller than this stay contiguous: deflate cannot win back its chunk index.
+const MIN_COMPRESSED_BYTES: usize = 4096;
+
+/// A chunk shape of about [`CHUNK_BYTES`] for a row-major dataset of `shape`: whole trailing
+/// axes (whole xy slices of a (z, y, x) volume, whole rows of an (N, 3) table), as many
+/// leading indices as fit.
+pub(crate) fn chunk_shape(shape: &[usize], elem_bytes: usize) -> Vec<usize> {
+    let mut chunk = shape.to_vec();
+    for a in 0..shape.len() {
+        let trailing: usize = shape[a + 1..].iter().product::<usize>() * elem_bytes.max(1);
+        if trailing <= CHUNK_BYTES {
+            chunk[a] = (CHUNK_BYTES / trailing).clamp(1, shape[a].max(1));
+            return chunk;
+        }
+        chunk[a] = 1;
+    }
+    chunk
+}
+
+/// Creates a dataset of `shape` holding `data` (row-major, last index fastest), chunked and
+/// deflated at `deflate` (1-9; 0 = contiguous, uncompressed), with the byte shuffle filter
+/// for multi-byte elements (it groups the similar high bytes of neighbouring numbers, which
+/// is what lets deflate shrink floats).
 pub(crate) fn dataset<T: H5Type>(
     g: &Group,
     name: &str,
     shape: &[usize],
     data: &[T],
+    deflate: u8,
 ) -> H5Result<Dataset> {
     debug_assert_eq!(shape.iter().product::<usize>(), data.len());
-    let d = g.new_dataset::<T>().shape(shape).create(name)?;
+    let elem = std::mem::size_of::<T>();
+    let mut b = g.new_dataset::<T>().shape(shape);
+    if deflate > 0 && std::mem::size_of_val(data) >= MIN_COMPRESSED_BYTES {
+        let mut filters = Vec::new();
+        if elem > 1 {
+            filters.push(hdf5_metno::filters::Filter::shuffle());
+        }
+        filters.push(hdf5_metno::filters::Filter::deflate(deflate.min(9)));
+        b = b.chunk(chunk_shape(shape, elem)).set_filters(&filters);
+    }
+    let d = b.create(name)?;
     if !data.is_empty() {
         d.write_raw(data)?;
     }
@@ -31,7 +73,9 @@ pub(crate) fn string_dataset(g: &Group, name: &str, values: &[String]) -> H5Resu
         .iter()
         .map(|s| vlu(s))
         .collect::<H5Result<Vec<_>>>()?;
-    dataset(g, name, &[v.len()], &v)
+    // Variable-length strings live in the global heap: deflating their references gains
+    // nothing.
+    dataset(g, name, &[v.len()], &v, 0)
 }
 
 pub(crate) fn attr_array<T: H5Type>(loc: &Location, name: &str, values: &[T]) -> H5Result<()> {
@@ -106,10 +150,51 @@ pub(crate) fn read_strings(g: &Group, name: &str) -> H5Result<Vec<String>> {
         .collect())
 }
 
-/// Provenance entries as string attributes of `loc`.
+/// Provenance entries whose values are unsigned integers: written as u64 attributes, so
+/// `f.attrs["seed"]` is a number in h5py and the 64-bit seeds survive exactly.
+pub(crate) const INTEGER_PROVENANCE: [&str; 2] = ["seed", "stage_seed"];
+
+/// Provenance entries as attributes of `loc`: the seeds as u64, the rest as strings.
 pub(crate) fn provenance_attrs(loc: &Location, prov: &grainpipe_core::Provenance) -> H5Result<()> {
     for (k, v) in &prov.entries {
-        attr_str(loc, k, v)?;
+        match v.parse::<u64>() {
+            Ok(n) if INTEGER_PROVENANCE.contains(&k.as_str()) => attr_scalar(loc, k, n)?,
+            _ => attr_str(loc, k, v)?,
+        }
     }
     Ok(())
+}
+
+/// The deflate level of an exporter's options (`compression`, 0-9; the default when absent).
+pub(crate) fn deflate_option(options: &grainpipe_core::registry::ExportOptions) -> u8 {
+    options
+        .get("compression")
+        .and_then(|v| v.as_u64())
+        .map(|l| l.min(9) as u8)
+        .unwrap_or(DEFAULT_DEFLATE)
+}
+
+/// The `compression` option the HDF5, VTKHDF and NetCDF exporters declare.
+pub(crate) fn compression_option() -> grainpipe_core::registry::ExportOption {
+    grainpipe_core::registry::ExportOption {
+        name: "compression",
+        doc: "deflate level of the datasets, 0-9: 0 writes them contiguous and uncompressed \
+              (fastest to write, largest), 1-9 chunked (about 1 MiB per chunk, whole xy \
+              slices) and deflated, with the byte shuffle filter for multi-byte numbers",
+        default: serde_json::json!(DEFAULT_DEFLATE),
+    }
+}
+
+/// Checks a `compression` value: an integer 0-9.
+pub(crate) fn check_compression(
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<(), (String, String)> {
+    match options.get("compression") {
+        None => Ok(()),
+        Some(v) if v.as_u64().is_some_and(|l| l <= 9) => Ok(()),
+        Some(v) => Err((
+            "compression".into(),
+            format!("{v} is not a deflate level; write an integer 0 (off) to 9 (smallest)"),
+        )),
+    }
 }

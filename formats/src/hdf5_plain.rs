@@ -1,31 +1,39 @@
 //! Plain HDF5 (`.h5`, `.hdf5`) for every artifact kind, and its readers.
 //!
-//! Layout (all lengths in metres, arrays row-major with the last index fastest):
-//! - root attributes: `grainpipe_kind` (artifact kind) and one string attribute per
-//!   provenance entry;
+//! Layout (all lengths in metres, arrays row-major with the last index fastest). Every
+//! dataset with a physical meaning has a `units` attribute (udunits: "m", "m^3", "1" for
+//! dimensionless and for indices); datasets of more than 4 KiB are chunked and deflated
+//! (level 4 unless the export's `compression` says otherwise):
+//! - root attributes: `grainpipe_kind` (artifact kind: what the file holds, since `.h5` says
+//!   nothing by itself) and one attribute per provenance entry (`seed` and `stage_seed` as
+//!   u64, the rest as strings);
 //! - PhaseImage: dataset `phase` (nz, ny, nx) u8 with attributes `spacing`, `origin` (x, y, z
 //!   order), `periodic`, `phase_ids`, `phase_names`, `axis_order` = "z y x";
 //! - Field: dataset named after the field, (nz, ny, nx) or (nz, ny, nx, components), with
-//!   `unit`, `spacing`, `origin`, `periodic`, `components`; root attribute `dataset` names it;
+//!   `units`, `spacing`, `origin`, `periodic`, `components`; root attribute `dataset` names it;
 //! - Packing: `positions` (N,3), `radius` (N; the clump's bounding radius for clump bodies),
 //!   `clump_index` (N; -1 for spheres), `orientation` (N,4) (w,x,y,z), `layer`, `frozen`,
-//!   group `domain` (attributes `min`, `max`, `periodic`; dataset `excluded_spheres` (M,4)
-//!   = centre, radius), group `library` when present, group `attributes` (one dataset per
-//!   body attribute with a `unit` attribute, order in the group's `order` attribute);
+//!   group `domain` (attributes `min`, `max`, `units`, `periodic`; dataset
+//!   `excluded_spheres` (M,4) = centre, radius), group `library` when present, group
+//!   `attributes` (one dataset per body attribute with `units` and `name`, int64 when
+//!   dimensionless and integer-valued, else float64; order in the group's `order` attribute);
 //! - ClumpLibrary (group `library`): `sphere_offset` (S,3), `sphere_radius` (S),
-//!   `first_sphere` (C+1), `volume`, `bounding_radius`, `principal_inertia` (C,3),
-//!   `principal_axes` (C,3,3), `clump_source` (C) and attribute `source`;
+//!   `first_sphere` (C+1), `volume`, `bounding_radius`, `principal_inertia` (C,3; per unit
+//!   density, m^5), `principal_axes` (C,3,3), `clump_source` (C) and attribute `source`;
 //! - ContactGraph: `pairs` (M,2), `gaps` (M), `bonds` (B,2), `positions` (N,3), group
-//!   `bond_attributes` (one dataset per name, B values, like a packing's `attributes`), group `faces`
-//!   with datasets `xmin` .. `zmax`;
+//!   `bond_attributes` (one dataset per name, B values, like a packing's `attributes`), group
+//!   `faces` with datasets `xmin` .. `zmax`;
 //! - Table: group `table` (attribute `name`, `column_order`), one dataset per column with
-//!   attributes `unit` and `name`;
-//! - Tensor: dataset `tensor` of the tensor's shape with `name`, `unit`, `convention`;
+//!   attributes `units` (numeric columns) and `name`;
+//! - Tensor: dataset `tensor` of the tensor's shape with `name`, `units`, `convention`;
 //! - Collection: group `items` with one group per item (`0000`, ...) with attribute `name`,
 //!   holding that item's layout
 //! - Series: group `frames` with one group per frame (`0000`, ...) holding that frame's layout
 //!   and a `time` attribute [s].
+//!
+//! The readers take `unit` where `units` is missing (files written before `units`).
 
+pub use crate::h5util::DEFAULT_DEFLATE;
 use crate::h5util::*;
 use crate::volume::{Probe, StatedGrid, Volume, VolumeData, VolumeRef};
 use grainpipe_core::fsutil::atomic_write;
@@ -43,32 +51,66 @@ fn kind_name(k: ArtifactKind) -> String {
     k.to_string()
 }
 
-/// Writes any artifact as plain HDF5.
+/// Writes any artifact as plain HDF5, datasets deflated at [`DEFAULT_DEFLATE`].
 pub fn write_h5(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    write_h5_with(a, path, prov, DEFAULT_DEFLATE)
+}
+
+/// Writes any artifact as plain HDF5 with datasets deflated at `deflate` (0 = contiguous,
+/// uncompressed; 1-9 chunked and deflated).
+pub fn write_h5_with(
+    a: &Artifact,
+    path: &Path,
+    prov: &Provenance,
+    deflate: u8,
+) -> Result<(), String> {
     atomic_write(path, |tmp| -> H5Result<()> {
         let f = File::create(tmp)?;
         provenance_attrs(&f, prov)?;
-        write_into(&f, a)
+        write_into(&f, a, deflate)
     })
 }
 
-fn write_into(g: &Group, a: &Artifact) -> H5Result<()> {
+/// A dataset with its `units` attribute (a udunits string, "1" for dimensionless).
+fn quantity<T: hdf5_metno::H5Type>(
+    g: &Group,
+    name: &str,
+    shape: &[usize],
+    data: &[T],
+    units: &str,
+    z: u8,
+) -> H5Result<hdf5_metno::Dataset> {
+    let d = dataset(g, name, shape, data, z)?;
+    attr_str(&d, "units", units_or_one(units))?;
+    Ok(d)
+}
+
+/// The empty unit of the data model is written "1", as CF and udunits spell dimensionless.
+fn units_or_one(u: &str) -> &str {
+    if u.is_empty() {
+        "1"
+    } else {
+        u
+    }
+}
+
+fn write_into(g: &Group, a: &Artifact, z: u8) -> H5Result<()> {
     attr_str(g, "grainpipe_kind", &kind_name(a.kind()))?;
     match a {
         Artifact::PhaseImage(_) | Artifact::Field(_) => {
-            write_volume(g, VolumeRef::from_artifact(a, "h5").map_err(err)?)
+            write_volume(g, VolumeRef::from_artifact(a, "h5").map_err(err)?, z)
         }
-        Artifact::Packing(p) => write_packing(g, p),
-        Artifact::ClumpLibrary(l) => write_library(&g.create_group("library")?, l),
-        Artifact::ContactGraph(c) => write_graph(g, c),
-        Artifact::Table(t) => write_table(g, t),
-        Artifact::Tensor(t) => write_tensor(g, t),
+        Artifact::Packing(p) => write_packing(g, p, z),
+        Artifact::ClumpLibrary(l) => write_library(&g.create_group("library")?, l, z),
+        Artifact::ContactGraph(c) => write_graph(g, c, z),
+        Artifact::Table(t) => write_table(g, t, z),
+        Artifact::Tensor(t) => write_tensor(g, t, z),
         Artifact::Series(s) => {
             let frames = g.create_group("frames")?;
             for (k, (t, frame)) in s.frames.iter().enumerate() {
                 let fg = frames.create_group(&format!("{k:04}"))?;
                 attr_scalar(&fg, "time", *t)?;
-                write_into(&fg, frame)?;
+                write_into(&fg, frame, z)?;
             }
             Ok(())
         }
@@ -77,14 +119,14 @@ fn write_into(g: &Group, a: &Artifact) -> H5Result<()> {
             for (k, (name, item)) in c.items.iter().enumerate() {
                 let ig = items.create_group(&format!("{k:04}"))?;
                 attr_str(&ig, "name", name)?;
-                write_into(&ig, item)?;
+                write_into(&ig, item, z)?;
             }
             Ok(())
         }
     }
 }
 
-fn write_volume(g: &Group, v: VolumeRef) -> H5Result<()> {
+fn write_volume(g: &Group, v: VolumeRef, z: u8) -> H5Result<()> {
     v.validate().map_err(err)?;
     let grid = v.grid();
     let [nx, ny, nz] = grid.dims;
@@ -101,7 +143,7 @@ fn write_volume(g: &Group, v: VolumeRef) -> H5Result<()> {
     // Data are stored x fastest, which is C order for shape (z, y, x[, c]): no reordering.
     let ds = match v {
         VolumeRef::Phase(p) => {
-            let d = dataset(g, name, &shape, &p.labels)?;
+            let d = dataset(g, name, &shape, &p.labels, z)?;
             let ids: Vec<u8> = p.phases.iter().map(|ph| ph.id).collect();
             attr_array(&d, "phase_ids", &ids)?;
             let names: Vec<&str> = p.phases.iter().map(|ph| ph.name.as_str()).collect();
@@ -109,14 +151,15 @@ fn write_volume(g: &Group, v: VolumeRef) -> H5Result<()> {
             d
         }
         VolumeRef::Field(f) => match &f.data {
-            FieldData::F32(x) => dataset(g, name, &shape, x)?,
-            FieldData::F64(x) => dataset(g, name, &shape, x)?,
+            FieldData::F32(x) => dataset(g, name, &shape, x, z)?,
+            FieldData::F64(x) => dataset(g, name, &shape, x, z)?,
         },
     };
     attr_array(&ds, "spacing", &grid.spacing)?;
     attr_array(&ds, "origin", &grid.origin)?;
     attr_array(&ds, "periodic", &grid.periodic.map(|b| b as u8))?;
-    attr_str(&ds, "unit", v.unit())?;
+    attr_str(&ds, "units", units_or_one(v.unit()))?;
+    attr_str(&ds, "spacing_units", "m")?;
     attr_str(&ds, "axis_order", "z y x")?;
     attr_scalar(&ds, "components", v.components() as u64)?;
     if let VolumeRef::Field(f) = v {
@@ -129,7 +172,7 @@ fn write_volume(g: &Group, v: VolumeRef) -> H5Result<()> {
     Ok(())
 }
 
-fn write_packing(g: &Group, p: &Packing) -> H5Result<()> {
+fn write_packing(g: &Group, p: &Packing, z: u8) -> H5Result<()> {
     let n = p.bodies.len();
     let positions: Vec<f64> = p.bodies.iter().flat_map(|b| b.position).collect();
     let orientation: Vec<f64> = p.bodies.iter().flat_map(|b| b.orientation).collect();
@@ -152,17 +195,18 @@ fn write_packing(g: &Group, p: &Packing) -> H5Result<()> {
             }
         }
     }
-    dataset(g, "positions", &[n, 3], &positions)?;
-    dataset(g, "radius", &[n], &radius)?;
-    dataset(g, "clump_index", &[n], &clump)?;
-    dataset(g, "orientation", &[n, 4], &orientation)?;
+    quantity(g, "positions", &[n, 3], &positions, "m", z)?;
+    quantity(g, "radius", &[n], &radius, "m", z)?;
+    quantity(g, "clump_index", &[n], &clump, "1", z)?;
+    quantity(g, "orientation", &[n, 4], &orientation, "1", z)?;
     let layer: Vec<u32> = p.bodies.iter().map(|b| b.layer).collect();
-    dataset(g, "layer", &[n], &layer)?;
+    quantity(g, "layer", &[n], &layer, "1", z)?;
     let frozen: Vec<u8> = p.bodies.iter().map(|b| b.frozen as u8).collect();
-    dataset(g, "frozen", &[n], &frozen)?;
+    quantity(g, "frozen", &[n], &frozen, "1", z)?;
     let d = g.create_group("domain")?;
     attr_array(&d, "min", &p.domain.min)?;
     attr_array(&d, "max", &p.domain.max)?;
+    attr_str(&d, "units", "m")?;
     attr_array(&d, "periodic", &p.domain.periodic.map(|b| b as u8))?;
     let ex: Vec<f64> = p
         .domain
@@ -172,24 +216,45 @@ fn write_packing(g: &Group, p: &Packing) -> H5Result<()> {
             ExcludedSolid::Sphere { center, radius } => [center[0], center[1], center[2], *radius],
         })
         .collect();
-    dataset(&d, "excluded_spheres", &[ex.len() / 4, 4], &ex)?;
+    quantity(&d, "excluded_spheres", &[ex.len() / 4, 4], &ex, "m", z)?;
     if let Some(l) = &p.library {
-        write_library(&g.create_group("library")?, l)?;
+        write_library(&g.create_group("library")?, l, z)?;
     }
-    write_named_values(g, "attributes", &p.attributes, n, "bodies")
+    write_named_values(g, "attributes", &p.attributes, n, "bodies", z)
 }
 
 /// Named per-item values (body or bond attributes) as group `group`: one dataset per name
-/// with attributes `unit` and `name`, and the order in the group's `order` attribute.
+/// with attributes `units` and `name`, and the order in the group's `order` attribute.
+/// Dimensionless values that are all integers (brick or class labels, bond counts) are
+/// stored as int64, the rest as float64; both read back as the same f64 values.
 fn write_named_values(
     g: &Group,
     group: &str,
     values: &IndexMap<String, BodyAttribute>,
     n: usize,
     items: &str,
+    z: u8,
 ) -> H5Result<()> {
     let ag = g.create_group(group)?;
     let mut order = Vec::new();
+    for (name, a) in values_checked(values, n, items)? {
+        let key = dataset_key(name);
+        let ds = match integer_values(a) {
+            Some(v) => quantity(&ag, &key, &[n], &v, &a.unit, z)?,
+            None => quantity(&ag, &key, &[n], &a.values, &a.unit, z)?,
+        };
+        attr_str(&ds, "name", name)?;
+        order.push(key);
+    }
+    let order: Vec<&str> = order.iter().map(|s| s.as_str()).collect();
+    attr_strs(&ag, "order", &order)
+}
+
+fn values_checked<'a>(
+    values: &'a IndexMap<String, BodyAttribute>,
+    n: usize,
+    items: &str,
+) -> H5Result<&'a IndexMap<String, BodyAttribute>> {
     for (name, a) in values {
         if a.values.len() != n {
             return Err(err(format!(
@@ -197,14 +262,21 @@ fn write_named_values(
                 a.values.len()
             )));
         }
-        let key = dataset_key(name);
-        let ds = dataset(&ag, &key, &[n], &a.values)?;
-        attr_str(&ds, "unit", &a.unit)?;
-        attr_str(&ds, "name", name)?;
-        order.push(key);
     }
-    let order: Vec<&str> = order.iter().map(|s| s.as_str()).collect();
-    attr_strs(&ag, "order", &order)
+    Ok(values)
+}
+
+/// The values as integers when the attribute is dimensionless and every value is an
+/// integer that f64 holds exactly (|v| <= 2^53), so int64 and back is lossless.
+pub(crate) fn integer_values(a: &BodyAttribute) -> Option<Vec<i64>> {
+    const EXACT: f64 = 9_007_199_254_740_992.0; // 2^53
+    if !(a.unit.is_empty() || a.unit == "1") || a.values.is_empty() {
+        return None;
+    }
+    a.values
+        .iter()
+        .map(|&v| (v.fract() == 0.0 && v.abs() <= EXACT).then_some(v as i64))
+        .collect()
 }
 
 /// Reads what [`write_named_values`] wrote.
@@ -216,12 +288,26 @@ fn read_named_values(ag: &Group) -> H5Result<IndexMap<String, BodyAttribute>> {
         out.insert(
             name,
             BodyAttribute {
-                unit: read_attr_str(&ds, "unit").unwrap_or_default(),
+                unit: read_units(&ds),
                 values: ds.read_raw::<f64>()?,
             },
         );
     }
     Ok(out)
+}
+
+/// The unit of a dataset: `units` (as CF and h5py users expect), else `unit` (files written
+/// before `units`), else none. Dimensionless, written "1", reads back as the data model's
+/// empty unit: the model spells it both ways and every writer treats them alike.
+pub(crate) fn read_units(ds: &hdf5_metno::Dataset) -> String {
+    let u = read_attr_str(ds, "units")
+        .or_else(|| read_attr_str(ds, "unit"))
+        .unwrap_or_default();
+    if u == "1" {
+        String::new()
+    } else {
+        u
+    }
 }
 
 /// HDF5 link names cannot contain `/` or be `.`; the true name is kept in a `name` attribute.
@@ -234,7 +320,7 @@ fn dataset_key(name: &str) -> String {
     }
 }
 
-fn write_library(g: &Group, l: &ClumpLibrary) -> H5Result<()> {
+fn write_library(g: &Group, l: &ClumpLibrary, z: u8) -> H5Result<()> {
     attr_str(g, "source", &l.source)?;
     let c = l.clumps.len();
     let mut first = vec![0i64];
@@ -247,27 +333,29 @@ fn write_library(g: &Group, l: &ClumpLibrary) -> H5Result<()> {
         }
         first.push(rad.len() as i64);
     }
-    dataset(g, "sphere_offset", &[rad.len(), 3], &off)?;
-    dataset(g, "sphere_radius", &[rad.len()], &rad)?;
-    dataset(g, "first_sphere", &[c + 1], &first)?;
+    quantity(g, "sphere_offset", &[rad.len(), 3], &off, "m", z)?;
+    quantity(g, "sphere_radius", &[rad.len()], &rad, "m", z)?;
+    quantity(g, "first_sphere", &[c + 1], &first, "1", z)?;
     let vol: Vec<f64> = l.clumps.iter().map(|c| c.volume).collect();
-    dataset(g, "volume", &[c], &vol)?;
+    quantity(g, "volume", &[c], &vol, "m^3", z)?;
     let br: Vec<f64> = l.clumps.iter().map(|c| c.bounding_radius).collect();
-    dataset(g, "bounding_radius", &[c], &br)?;
+    quantity(g, "bounding_radius", &[c], &br, "m", z)?;
+    // Moments per unit density: kg m^2 / (kg m^-3).
     let pi: Vec<f64> = l.clumps.iter().flat_map(|c| c.principal_inertia).collect();
-    dataset(g, "principal_inertia", &[c, 3], &pi)?;
+    quantity(g, "principal_inertia", &[c, 3], &pi, "m^5", z)?;
     let pa: Vec<f64> = l
         .clumps
         .iter()
         .flat_map(|c| c.principal_axes.into_iter().flatten())
         .collect();
-    dataset(g, "principal_axes", &[c, 3, 3], &pa)?;
+    quantity(g, "principal_axes", &[c, 3, 3], &pa, "1", z)?;
     let src: Vec<String> = l.clumps.iter().map(|c| c.source.clone()).collect();
     string_dataset(g, "clump_source", &src)?;
     Ok(())
 }
 
-fn write_graph(g: &Group, c: &ContactGraph) -> H5Result<()> {
+fn write_graph(g: &Group, c: &ContactGraph, z: u8) -> H5Result<()> {
+    c.validate().map_err(err)?;
     let m = c.contacts.len();
     let pairs: Vec<i64> = c
         .contacts
@@ -275,28 +363,28 @@ fn write_graph(g: &Group, c: &ContactGraph) -> H5Result<()> {
         .flat_map(|k| [k.i as i64, k.j as i64])
         .collect();
     let gaps: Vec<f64> = c.contacts.iter().map(|k| k.gap).collect();
-    dataset(g, "pairs", &[m, 2], &pairs)?;
-    dataset(g, "gaps", &[m], &gaps)?;
+    quantity(g, "pairs", &[m, 2], &pairs, "1", z)?;
+    quantity(g, "gaps", &[m], &gaps, "m", z)?;
     let bonds: Vec<i64> = c.bonds.iter().flatten().map(|&i| i as i64).collect();
-    dataset(g, "bonds", &[c.bonds.len(), 2], &bonds)?;
+    quantity(g, "bonds", &[c.bonds.len(), 2], &bonds, "1", z)?;
     let pos: Vec<f64> = c.positions.iter().flatten().copied().collect();
-    dataset(g, "positions", &[c.positions.len(), 3], &pos)?;
+    quantity(g, "positions", &[c.positions.len(), 3], &pos, "m", z)?;
     let faces = g.create_group("faces")?;
     for (f, name) in c.faces.iter().zip(FACE_NAMES) {
         let v: Vec<i64> = f.iter().map(|&i| i as i64).collect();
-        dataset(&faces, name, &[v.len()], &v)?;
+        quantity(&faces, name, &[v.len()], &v, "1", z)?;
     }
-    c.validate().map_err(err)?;
     write_named_values(
         g,
         "bond_attributes",
         &c.bond_attributes,
         c.bonds.len(),
         "bonds",
+        z,
     )
 }
 
-fn write_table(g: &Group, t: &Table) -> H5Result<()> {
+fn write_table(g: &Group, t: &Table, z: u8) -> H5Result<()> {
     t.validate().map_err(err)?;
     let tg = g.create_group("table")?;
     attr_str(&tg, "name", &t.name)?;
@@ -308,11 +396,11 @@ fn write_table(g: &Group, t: &Table) -> H5Result<()> {
         }
         let n = c.data.len();
         let ds = match &c.data {
-            ColumnData::F64(v) => dataset(&tg, &key, &[n], v)?,
-            ColumnData::I64(v) => dataset(&tg, &key, &[n], v)?,
+            ColumnData::F64(v) => quantity(&tg, &key, &[n], v, &c.unit, z)?,
+            ColumnData::I64(v) => quantity(&tg, &key, &[n], v, &c.unit, z)?,
+            // Text has no unit.
             ColumnData::Str(v) => string_dataset(&tg, &key, v)?,
         };
-        attr_str(&ds, "unit", &c.unit)?;
         attr_str(&ds, "name", &c.name)?;
         order.push(key);
     }
@@ -320,7 +408,7 @@ fn write_table(g: &Group, t: &Table) -> H5Result<()> {
     attr_strs(&tg, "column_order", &order)
 }
 
-fn write_tensor(g: &Group, t: &Tensor) -> H5Result<()> {
+fn write_tensor(g: &Group, t: &Tensor, z: u8) -> H5Result<()> {
     if t.shape.iter().product::<usize>() != t.values.len() {
         return Err(err(format!(
             "tensor `{}` has {} values for shape {:?}",
@@ -329,9 +417,8 @@ fn write_tensor(g: &Group, t: &Tensor) -> H5Result<()> {
             t.shape
         )));
     }
-    let ds = dataset(g, "tensor", &t.shape, &t.values)?;
+    let ds = quantity(g, "tensor", &t.shape, &t.values, &t.unit, z)?;
     attr_str(&ds, "name", &t.name)?;
-    attr_str(&ds, "unit", &t.unit)?;
     attr_str(&ds, "convention", &format!("{:?}", t.convention))?;
     let shape: Vec<u64> = t.shape.iter().map(|&s| s as u64).collect();
     attr_array(&ds, "shape", &shape)
@@ -571,7 +658,7 @@ fn read_table(g: &Group) -> H5Result<Table> {
         };
         t.columns.push(Column {
             name: read_attr_str(&ds, "name").unwrap_or(key.clone()),
-            unit: read_attr_str(&ds, "unit").unwrap_or_default(),
+            unit: read_units(&ds),
             data,
         });
     }
@@ -587,7 +674,7 @@ fn read_tensor(g: &Group) -> H5Result<Tensor> {
     };
     Ok(Tensor {
         name: read_attr_str(&ds, "name").unwrap_or_default(),
-        unit: read_attr_str(&ds, "unit").unwrap_or_default(),
+        unit: read_units(&ds),
         shape: ds.shape(),
         values: ds.read_raw::<f64>()?,
         convention,
@@ -671,7 +758,7 @@ fn volume_from(g: &Group, name: &str) -> H5Result<Volume> {
     }
     Ok(Volume {
         name: name.rsplit('/').next().unwrap_or(name).to_string(),
-        unit: read_attr_str(&ds, "unit").unwrap_or_default(),
+        unit: read_units(&ds),
         dims,
         components,
         convention: read_attr_str(&ds, "component_convention")
@@ -714,7 +801,21 @@ crate::vtk_xml::exporter!(
     ],
     "plain HDF5: images/fields as (z, y, x) datasets with spacing/origin attributes, packings, \
      clump libraries, contact graphs, tables (one dataset per column with its unit), tensors, \
-     series (one group per frame), collections (one named group per item); provenance as root \
-     attributes",
-    write_h5
+     series (one group per frame), collections (one named group per item); `units` on every \
+     dataset, root attribute `grainpipe_kind`, provenance as root attributes (seeds as u64); \
+     datasets chunked and deflated (option `compression`). pyvista.read does not know this \
+     layout: export `.vtkhdf` (images) or `.vtp` (packings) for pyvista",
+    write_h5,
+    options: vec![compression_option()],
+    check: check_compression,
+    write_with: write_h5_options
 );
+
+fn write_h5_options(
+    a: &Artifact,
+    path: &Path,
+    prov: &Provenance,
+    options: &registry::ExportOptions,
+) -> Result<(), String> {
+    write_h5_with(a, path, prov, deflate_option(options))
+}

@@ -286,6 +286,9 @@ fn finish(
     if !o.unit.is_empty() {
         v.unit = o.unit.clone();
     }
+    if o.as_ == ImportAs::PhaseImage {
+        check_labels(&v).map_err(|e| StageError::failed(format!("{path}: {e}")))?;
+    }
     let art = match o.as_ {
         ImportAs::PhaseImage => v.into_phase_image().map(Artifact::PhaseImage),
         ImportAs::Field => v.into_field().map(Artifact::Field),
@@ -294,6 +297,92 @@ fn finish(
     let mut out = Outputs::new();
     out.insert(port(o.as_).0.to_string(), art);
     Ok(out)
+}
+
+/// Files up to this size are read once at preflight to check that their values are labels,
+/// so a wrong `as:` fails before any stage runs; larger ones are checked at run time.
+const PREFLIGHT_READ_BYTES: u64 = 256 << 20;
+
+/// The first voxel whose value is not a phase label (an integer 0..=255), as (x, y, z) and
+/// the value, with what to do about it.
+fn check_labels(v: &Volume) -> Result<(), String> {
+    if matches!(v.data, crate::volume::VolumeData::U8(_)) || v.components != 1 {
+        return Ok(());
+    }
+    let [nx, ny, _] = v.dims;
+    let bad = (0..v.data.len()).find(|&i| {
+        let x = v.data.get(i);
+        !(0.0..=255.0).contains(&x) || x.fract() != 0.0
+    });
+    let Some(i) = bad else { return Ok(()) };
+    let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+    let (lo, hi) = (0..v.data.len())
+        .map(|i| v.data.get(i))
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+            (a.min(x), b.max(x))
+        });
+    Err(format!(
+        "voxel (x={x}, y={y}, z={z}) holds {}; phase labels are integers 0..=255 (values span \
+         {lo} .. {hi}): import it with `as: field`, or relabel/threshold it first",
+        v.data.get(i)
+    ))
+}
+
+/// Reads the volume at preflight when the file is small enough and checks its labels
+/// (`as: phase_image` only); the error goes to the `as` key.
+fn preflight_labels(
+    path: &Path,
+    o: &ImportOptions,
+    read: impl FnOnce() -> Result<Volume, String>,
+) -> Result<(), StageError> {
+    if o.as_ != ImportAs::PhaseImage {
+        return Ok(());
+    }
+    let size = std::fs::metadata(path).map(|m| m.len()).unwrap_or(u64::MAX);
+    if size > PREFLIGHT_READ_BYTES {
+        return Ok(());
+    }
+    let v = read().map_err(|e| StageError::param("path", e))?;
+    check_labels(&v).map_err(|e| StageError::param("as", format!("{}: {e}", path.display())))
+}
+
+/// Every dataset path in an HDF5 file, for "no such dataset" messages.
+fn hdf5_datasets(path: &Path) -> Vec<String> {
+    fn walk(g: &hdf5_metno::Group, prefix: &str, out: &mut Vec<String>) {
+        for name in g.member_names().unwrap_or_default() {
+            let full = format!("{prefix}{name}");
+            if let Ok(sub) = g.group(&name) {
+                walk(&sub, &format!("{full}/"), out);
+            } else if g.dataset(&name).is_ok() {
+                out.push(full);
+            }
+        }
+    }
+    let mut out = Vec::new();
+    if let Ok(f) = hdf5_metno::File::open(path) {
+        walk(&f, "", &mut out);
+    }
+    out
+}
+
+/// A dataset name that is not in the file: which datasets are, and the closest one.
+fn missing_dataset(path: &Path, dataset: &str, e: String) -> String {
+    let all = hdf5_datasets(path);
+    if dataset.is_empty() || all.is_empty() || all.iter().any(|d| d == dataset) {
+        return e;
+    }
+    let hint = match grainpipe_core::registry::closest(dataset, all.iter().map(|s| s.as_str())) {
+        Some(c) => format!("; did you mean `{c}`?"),
+        None => String::new(),
+    };
+    format!(
+        "{}: no dataset `{dataset}`; the file holds {}{hint}",
+        path.display(),
+        all.iter()
+            .map(|d| format!("`{d}`"))
+            .collect::<Vec<_>>()
+            .join(", ")
+    )
 }
 
 // ---------------------------------------------------------------------------------------
@@ -370,7 +459,12 @@ impl TypedStage for ImportRaw {
         }
         let path = check_path(&p.path)?;
         let probe = probe_raw(path, &p.layout()).map_err(|e| StageError::param("dims", e))?;
-        preflight_common(&self.info(), probe.into(), p.spacing, &p.options)
+        let pf = preflight_common(&self.info(), probe.into(), p.spacing, &p.options)?;
+        let g = &pf.plan.grid;
+        preflight_labels(path, &p.options, || {
+            read_raw(path, &p.layout(), g.spacing, g.origin)
+        })?;
+        Ok(pf)
     }
 
     fn run(
@@ -426,7 +520,10 @@ macro_rules! named_import {
                 #[allow(clippy::redundant_closure_call)]
                 let header = ($header)(path, p.$key.as_str())
                     .map_err(|e| StageError::param(stringify!($key), e))?;
-                preflight_common(&self.info(), header, p.spacing, &p.options)
+                let pf = preflight_common(&self.info(), header, p.spacing, &p.options)?;
+                #[allow(clippy::redundant_closure_call)]
+                preflight_labels(path, &p.options, || ($read)(path, p.$key.as_str()))?;
+                Ok(pf)
             }
 
             fn run(
@@ -460,7 +557,8 @@ named_import!(ImportHdf5, Hdf5Params, "import.hdf5", dataset,
     "dataset path inside the file, e.g. `labels` or `group/data` (shape (z, y, x), (y, x) or (z, y, x, c))",
     "Reads one HDF5 dataset as a volume; spacing/origin (x, y, z, metres) or ImageJ's \
      element_size_um are taken from its attributes when present.",
-    |p: &Path, k: &str| need("dataset", k).and_then(|k| hdf5_header(p, k)),
+    |p: &Path, k: &str| need("dataset", k)
+        .and_then(|k| hdf5_header(p, k).map_err(|e| missing_dataset(p, k, e))),
     |p: &Path, k: &str| need("dataset", k).and_then(|k| crate::hdf5_plain::read_hdf5_dataset(p, k)));
 
 named_import!(
@@ -494,7 +592,9 @@ pub struct TiffParams {
     /// multi-page TIFF file, or directory of .tif/.tiff slices (relative to the working directory)
     #[param(file, ty = "path")]
     pub path: String,
-    /// voxel size (required: TIFF resolution tags are not trusted)
+    /// voxel size: one length or [x, y, z]; overrides the stack's calibration (grainpipe or
+    /// ImageJ description, or resolution tags in cm; inch tags are ignored), required when
+    /// the stack has none
     #[param(ty = "length or [x, y, z]")]
     pub spacing: Option<Lengths3>,
     #[param(flatten)]
@@ -513,7 +613,9 @@ impl TypedStage for ImportTiff {
             "Reads a TIFF stack as a volume: a multi-page TIFF (page k = slice z = k) or a \
              directory of single-page TIFFs in file-name order, as CT software writes them. \
              Grayscale 8/16/32/64-bit pages; row r of a page is y = r. Preflight reads every \
-             page header and checks that all pages share size and type.",
+             page header and checks that all pages share size and type. The voxel size, \
+             origin and phase names written by the `tiff` exporter come back; so does an \
+             ImageJ/Fiji calibration.",
         )
         .outputs(outputs())
     }
@@ -523,17 +625,18 @@ impl TypedStage for ImportTiff {
         p: &TiffParams,
         _: &InputMetas,
     ) -> Result<Preflight<ImportPlan>, StageError> {
-        if p.spacing.is_none() {
-            return Err(StageError::param(
-                "spacing",
-                "give the voxel size of the stack, e.g. `spacing: 4 um`",
-            ));
-        }
         let path = Path::new(&p.path);
         if !path.is_dir() {
             check_path(&p.path)?;
         }
         let probe = crate::tiff_io::probe_tiff(path).map_err(|e| StageError::param("path", e))?;
+        if p.spacing.is_none() && probe.spacing.is_none() {
+            return Err(StageError::param(
+                "spacing",
+                "the stack states no voxel size (no ImageJ calibration, no resolution in cm); \
+                 give it, e.g. `spacing: 4 um`",
+            ));
+        }
         preflight_common(&self.info(), probe.into(), p.spacing, &p.options)
     }
 

@@ -11,10 +11,17 @@
 //! | `nc` | .nc | PhaseImage, Field |
 //! | `csv` | .csv | Table, Tensor, ContactGraph |
 //! | `json` | .json | Table, Tensor, ContactGraph |
+//! | `tiff` | .tif, .tiff | PhaseImage, Field (one component) |
+//! | `raw` | .mhd, .raw | PhaseImage, Field (raw voxels + MetaImage header) |
+//! | `lammps-data` | .data, .lmp | Packing |
+//! | `lammps-molecule` | (by name) | ClumpLibrary, Packing with clumps |
+//! | `yade` | (by name) | Packing |
+//! | `stl` | .stl | Packing, ClumpLibrary (icospheres), PhaseImage (one phase's surface) |
 //!
 //! Every writer goes through `grainpipe_core::fsutil::atomic_write`: a failed write leaves
 //! no file behind. See docs/stages/formats.md for the layouts and how to open them.
 
+pub mod dem;
 mod h5util;
 pub mod hdf5_plain;
 pub mod headers;
@@ -22,6 +29,7 @@ pub mod import;
 pub mod import_packing;
 pub mod netcdf_io;
 pub mod raw;
+pub mod stl;
 pub mod tables;
 pub mod tiff_io;
 pub mod volume;
@@ -54,6 +62,12 @@ pub fn register(r: &mut Registry) {
     r.add_exporter(netcdf_io::NcExporter);
     r.add_exporter(tables::CsvExporter);
     r.add_exporter(tables::JsonExporter);
+    r.add_exporter(tiff_io::TiffExporter);
+    r.add_exporter(raw::RawExporter);
+    r.add_exporter(dem::LammpsDataExporter);
+    r.add_exporter(dem::LammpsMoleculeExporter);
+    r.add_exporter(dem::YadeExporter);
+    r.add_exporter(stl::StlExporter);
     r.add_stage(import::ImportRaw);
     r.add_stage(import::ImportHdf5);
     r.add_stage(import::ImportNetcdf);

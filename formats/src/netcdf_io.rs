@@ -42,13 +42,44 @@ fn nc_name(k: &str) -> String {
     s
 }
 
+/// Writes a NetCDF-4 file, the data variable deflated at
+/// [`crate::hdf5_plain::DEFAULT_DEFLATE`].
 pub fn write_nc(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
-    let v = VolumeRef::from_artifact(a, "nc")?;
-    v.validate()?;
-    atomic_write(path, |tmp| write_inner(v, tmp, prov))
+    write_nc_with(a, path, prov, crate::hdf5_plain::DEFAULT_DEFLATE)
 }
 
-fn write_inner(v: VolumeRef, tmp: &Path, prov: &Provenance) -> NcResult<()> {
+/// Writes a NetCDF-4 file with the data variable chunked (whole xy slices, about 1 MiB per
+/// chunk) and deflated at `deflate` (0 = contiguous, uncompressed), with the shuffle filter
+/// for multi-byte values.
+pub fn write_nc_with(
+    a: &Artifact,
+    path: &Path,
+    prov: &Provenance,
+    deflate: u8,
+) -> Result<(), String> {
+    let v = VolumeRef::from_artifact(a, "nc")?;
+    v.validate()?;
+    atomic_write(path, |tmp| write_inner(v, tmp, prov, deflate))
+}
+
+/// Chunks and deflates a data variable of `shape` and `elem` bytes per value (no-op for
+/// `deflate` 0 or a variable too small to gain).
+fn compress(
+    var: &mut netcdf::VariableMut,
+    shape: &[usize],
+    elem: usize,
+    deflate: u8,
+) -> NcResult<()> {
+    if deflate == 0 || shape.iter().product::<usize>() * elem < 4096 {
+        return Ok(());
+    }
+    var.set_chunking(&crate::h5util::chunk_shape(shape, elem))
+        .map_err(nc)?;
+    var.set_compression(i32::from(deflate.min(9)), elem > 1)
+        .map_err(nc)
+}
+
+fn write_inner(v: VolumeRef, tmp: &Path, prov: &Provenance, deflate: u8) -> NcResult<()> {
     let g = v.grid();
     let [nx, ny, nz] = g.dims;
     quiet_hdf5();
@@ -61,7 +92,13 @@ fn write_inner(v: VolumeRef, tmp: &Path, prov: &Provenance) -> NcResult<()> {
     f.add_attribute("periodic", g.periodic.map(|b| b as u8).to_vec())
         .map_err(nc)?;
     for (k, val) in &prov.entries {
-        f.add_attribute(&nc_name(k), val.as_str()).map_err(nc)?;
+        match val.parse::<u64>() {
+            // NC_UINT64, so `ds.seed` is a number in netCDF4-python and 64-bit seeds stay exact.
+            Ok(n) if crate::h5util::INTEGER_PROVENANCE.contains(&k.as_str()) => {
+                f.add_attribute(&nc_name(k), n).map_err(nc)?
+            }
+            _ => f.add_attribute(&nc_name(k), val.as_str()).map_err(nc)?,
+        };
     }
     for (name, n) in [("z", nz), ("y", ny), ("x", nx)] {
         f.add_dimension(name, n).map_err(nc)?;
@@ -83,9 +120,14 @@ fn write_inner(v: VolumeRef, tmp: &Path, prov: &Provenance) -> NcResult<()> {
         dims.push("component");
     }
     let name = nc_name(v.name());
+    let mut shape = vec![nz, ny, nx];
+    if v.components() > 1 {
+        shape.push(v.components());
+    }
     match v {
         VolumeRef::Phase(p) => {
             let mut var = f.add_variable::<u8>(&name, &dims).map_err(nc)?;
+            compress(&mut var, &shape, 1, deflate)?;
             var.put_attribute("long_name", "phase label").map_err(nc)?;
             var.put_attribute("units", "1").map_err(nc)?;
             let ids: Vec<u8> = p.phases.iter().map(|ph| ph.id).collect();
@@ -104,6 +146,7 @@ fn write_inner(v: VolumeRef, tmp: &Path, prov: &Provenance) -> NcResult<()> {
             macro_rules! put {
                 ($t:ty, $d:expr) => {{
                     let mut var = f.add_variable::<$t>(&name, &dims).map_err(nc)?;
+                    compress(&mut var, &shape, std::mem::size_of::<$t>(), deflate)?;
                     var.put_attribute("long_name", fl.name.as_str())
                         .map_err(nc)?;
                     var.put_attribute("units", unit).map_err(nc)?;
@@ -339,6 +382,19 @@ crate::vtk_xml::exporter!(
     [PhaseImage, Field],
     "NetCDF-4, CF style: (z, y, x[, component]) variable with units/long_name, coordinate \
      variables x, y, z at voxel centres [m], phase table as flag_values/flag_meanings, \
-     provenance as global attributes",
-    write_nc
+     provenance as global attributes (seeds as uint64); data variable chunked and deflated \
+     (option `compression`)",
+    write_nc,
+    options: vec![crate::h5util::compression_option()],
+    check: crate::h5util::check_compression,
+    write_with: write_nc_options
 );
+
+fn write_nc_options(
+    a: &Artifact,
+    path: &Path,
+    prov: &Provenance,
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<(), String> {
+    write_nc_with(a, path, prov, crate::h5util::deflate_option(options))
+}

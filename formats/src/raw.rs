@@ -131,3 +131,149 @@ pub fn read_raw(
         phases: Vec::new(),
     })
 }
+
+// ---------------------------------------------------------------------------------------
+// Writer: raw data plus a MetaImage header
+
+use crate::volume::{to_le_bytes, VolumeRef};
+use grainpipe_core::fsutil::atomic_write_bytes;
+use grainpipe_core::FieldData;
+
+/// The `.raw` and `.mhd` paths of an export to `path` (either extension names the pair).
+pub fn mhd_pair(path: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    (path.with_extension("raw"), path.with_extension("mhd"))
+}
+
+/// Metres per unit of the lengths written in the `.mhd` header.
+fn length_unit(v: &serde_json::Value) -> Result<f64, String> {
+    match v.as_str() {
+        Some("m") => Ok(1.0),
+        Some("mm") => Ok(1e-3),
+        Some("um") => Ok(1e-6),
+        _ => Err(format!(
+            "{v} is not a length unit of the header; write `mm` (what ITK and 3D Slicer \
+             assume), `um` or `m`"
+        )),
+    }
+}
+
+/// Writes the voxels headerless (x fastest, little-endian; components interleaved) and a
+/// MetaImage header beside them. The header is written last, so a header never names a
+/// partial data file. `unit`: metres per header length unit.
+pub fn write_raw_mhd(
+    artifact: &grainpipe_core::Artifact,
+    path: &Path,
+    prov: &grainpipe_core::Provenance,
+    unit: f64,
+) -> Result<(), String> {
+    let v = VolumeRef::from_artifact(artifact, "raw")?;
+    v.validate()?;
+    let (raw, mhd) = mhd_pair(path);
+    let (bytes, met) = match v {
+        VolumeRef::Phase(p) => (p.labels.clone(), "MET_UCHAR"),
+        VolumeRef::Field(f) => match &f.data {
+            FieldData::F32(d) => (to_le_bytes(d), "MET_FLOAT"),
+            FieldData::F64(d) => (to_le_bytes(d), "MET_DOUBLE"),
+        },
+    };
+    let g = v.grid();
+    let l = |a: [f64; 3]| format!("{:e} {:e} {:e}", a[0] / unit, a[1] / unit, a[2] / unit);
+    // MetaImage's Offset is the centre of the first voxel, not the grid's lower corner.
+    let centre = [0, 1, 2].map(|a| g.origin[a] + 0.5 * g.spacing[a]);
+    let mut h = String::new();
+    for (k, val) in &prov.entries {
+        // Comment lines are not MetaImage; provenance goes into keys ITK ignores.
+        let key: String = k
+            .chars()
+            .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+            .collect();
+        h.push_str(&format!(
+            "grainpipe_{key} = {}\n",
+            val.replace(['\n', '\r'], " ")
+        ));
+    }
+    let mut head = format!(
+        "ObjectType = Image\nNDims = 3\nBinaryData = True\nBinaryDataByteOrderMSB = False\n\
+         CompressedData = False\nTransformMatrix = 1 0 0 0 1 0 0 0 1\nOffset = {}\n\
+         CenterOfRotation = 0 0 0\nAnatomicalOrientation = RAI\nElementSpacing = {}\n\
+         DimSize = {} {} {}\n",
+        l(centre),
+        l(g.spacing),
+        g.dims[0],
+        g.dims[1],
+        g.dims[2]
+    );
+    if v.components() > 1 {
+        head.push_str(&format!("ElementNumberOfChannels = {}\n", v.components()));
+    }
+    head.push_str(&h);
+    let name = raw
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    head.push_str(&format!("ElementType = {met}\nElementDataFile = {name}\n"));
+    atomic_write_bytes(&raw, &bytes)?;
+    atomic_write_bytes(&mhd, head.as_bytes())
+}
+
+/// The `raw` exporter.
+pub struct RawExporter;
+
+impl grainpipe_core::Exporter for RawExporter {
+    fn name(&self) -> &'static str {
+        "raw"
+    }
+    fn extensions(&self) -> &'static [&'static str] {
+        &["mhd", "raw"]
+    }
+    fn accepts(&self, kind: grainpipe_core::ArtifactKind) -> bool {
+        matches!(
+            kind,
+            grainpipe_core::ArtifactKind::PhaseImage | grainpipe_core::ArtifactKind::Field
+        )
+    }
+    fn doc(&self) -> &'static str {
+        "Headerless raw voxels (x fastest, little-endian; u8 labels, f32/f64 values, \
+         components interleaved) as <name>.raw plus a MetaImage header <name>.mhd (DimSize, \
+         ElementType, ElementSpacing, Offset = first voxel centre, byte order), which ITK, \
+         3D Slicer, Avizo, Dragonfly and Fiji open; `to:` may name either file. import.raw \
+         reads the .raw back."
+    }
+    fn options(&self) -> Vec<grainpipe_core::registry::ExportOption> {
+        vec![grainpipe_core::registry::ExportOption {
+            name: "length_unit",
+            doc: "unit of ElementSpacing and Offset in the .mhd: `mm` (ITK/3D Slicer \
+                  convention), `um` or `m`",
+            default: serde_json::json!("mm"),
+        }]
+    }
+    fn check_options(
+        &self,
+        options: &grainpipe_core::registry::ExportOptions,
+    ) -> Result<(), (String, String)> {
+        length_unit(&options["length_unit"]).map_err(|m| ("length_unit".to_string(), m))?;
+        Ok(())
+    }
+    fn write(
+        &self,
+        artifact: &grainpipe_core::Artifact,
+        path: &Path,
+        provenance: &grainpipe_core::Provenance,
+    ) -> Result<(), String> {
+        write_raw_mhd(artifact, path, provenance, 1e-3)
+    }
+    fn write_with(
+        &self,
+        artifact: &grainpipe_core::Artifact,
+        path: &Path,
+        provenance: &grainpipe_core::Provenance,
+        options: &grainpipe_core::registry::ExportOptions,
+    ) -> Result<(), String> {
+        let unit = options
+            .get("length_unit")
+            .map(length_unit)
+            .transpose()?
+            .unwrap_or(1e-3);
+        write_raw_mhd(artifact, path, provenance, unit)
+    }
+}

@@ -1,8 +1,13 @@
 //! CSV and JSON for tables, tensors and contact graphs, with readers for round trips.
 //!
-//! CSV: a table has one header row `name [unit]` (just `name` when unitless); a tensor has one
-//! `#` comment line (name, unit, convention, shape) then its matrix rows; a contact graph has
-//! `i,j,gap [m],bonded` rows (contacts, then bonds that are not contacts with an empty gap).
+//! CSV: one header row, then data rows, nothing else (a plain `pandas.read_csv` reads it).
+//! Headers are `name [unit]` for numeric columns ("[1]" when dimensionless), the bare name
+//! for text. A table has one column per table column; a tensor has its matrix rows under
+//! column labels (`xx [Pa]` .. `xy [Pa]` for a 6x6 Voigt/Mandel tensor, `x`..`z` for 3
+//! columns); a contact graph has `i [1],j [1],gap [m],bonded [1]` and the bond attributes
+//! (contacts, then bonds that are not contacts with an empty gap). Provenance, the table or
+//! tensor name, exact units and the tensor convention and shape are in the sidecar
+//! `x.csv.json` ([`csv_sidecar`]).
 //! JSON: one object with `kind`, the data and `provenance`. JSON has no NaN: non-finite
 //! numbers are written as `null` and read back as NaN.
 
@@ -15,9 +20,13 @@ use std::path::Path;
 // ---------------------------------------------------------------------------------------
 // CSV
 
-fn header(name: &str, unit: &str) -> String {
-    if unit.is_empty() {
+/// The one header convention of every CSV: `name [unit]` for numbers ("1" when
+/// dimensionless, so a bare name never hides a unit), the bare name for text.
+fn header(name: &str, unit: &str, numeric: bool) -> String {
+    if !numeric {
         name.to_string()
+    } else if unit.is_empty() {
+        format!("{name} [1]")
     } else {
         format!("{name} [{unit}]")
     }
@@ -46,36 +55,35 @@ fn csv_err(e: csv::Error) -> String {
     e.to_string()
 }
 
-/// The provenance as `#` comment lines (`# key: value`; values with line breaks or other
-/// control characters JSON-quoted, so every entry stays on one line). CSV readers skip them
-/// with their comment option (`comment='#'` in pandas and numpy).
-fn provenance_comment(prov: &Provenance) -> String {
-    let mut out = String::new();
-    for (k, v) in &prov.entries {
-        let v = if v.chars().any(char::is_control) {
-            serde_json::to_string(v).unwrap_or_default()
-        } else {
-            v.clone()
-        };
-        out.push_str(&format!("# {k}: {v}\n"));
-    }
-    out
+/// Where the provenance and exact column metadata of `x.csv` go: `x.csv.json` beside it.
+/// The CSV itself is the header row and the data rows and nothing else, so a plain
+/// `pandas.read_csv(path)`, `numpy.genfromtxt(path, delimiter=",", names=True)` or a
+/// spreadsheet reads it right with no options.
+pub fn csv_sidecar(path: &Path) -> std::path::PathBuf {
+    let mut name = path.file_name().unwrap_or_default().to_os_string();
+    name.push(".json");
+    path.with_file_name(name)
 }
 
+/// Writes the sidecar, then the CSV (each atomically): a CSV on disk always has the sidecar
+/// of the same write or a newer one beside it.
 fn write_csv_records(
     path: &Path,
-    comment: Option<String>,
+    meta: Value,
     prov: &Provenance,
     rows: impl Iterator<Item = Vec<String>>,
 ) -> Result<(), String> {
+    let mut meta = meta;
+    meta["csv"] = Value::String(
+        path.file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default(),
+    );
+    meta["provenance"] = prov_json(prov);
+    let text = serde_json::to_string_pretty(&meta).map_err(|e| e.to_string())?;
+    atomic_write(&csv_sidecar(path), |tmp| std::fs::write(tmp, text))?;
     atomic_write(path, |tmp| -> Result<(), String> {
-        let mut file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
-        use std::io::Write;
-        if let Some(c) = comment {
-            writeln!(file, "# {}", c.replace('\n', " ")).map_err(|e| e.to_string())?;
-        }
-        file.write_all(provenance_comment(prov).as_bytes())
-            .map_err(|e| e.to_string())?;
+        let file = std::fs::File::create(tmp).map_err(|e| e.to_string())?;
         let mut w = csv::WriterBuilder::new().flexible(true).from_writer(file);
         for r in rows {
             w.write_record(&r).map_err(csv_err)?;
@@ -84,11 +92,48 @@ fn write_csv_records(
     })
 }
 
+/// Column labels of a tensor's matrix rows: the symmetric-tensor order for 6 columns of a
+/// Voigt/Mandel tensor, x y z for 3, else c0, c1, ...
+fn tensor_labels(t: &Tensor, cols: usize) -> Vec<String> {
+    match (t.convention, cols) {
+        (TensorConvention::Voigt | TensorConvention::Mandel, 6) => {
+            ["xx", "yy", "zz", "yz", "xz", "xy"]
+                .map(String::from)
+                .to_vec()
+        }
+        (_, 3) => ["x", "y", "z"].map(String::from).to_vec(),
+        _ => (0..cols).map(|k| format!("c{k}")).collect(),
+    }
+}
+
+fn columns_json(cols: &[(String, String, String)]) -> Value {
+    Value::Array(
+        cols.iter()
+            .map(|(n, u, h)| json!({"name": n, "unit": u, "header": h}))
+            .collect(),
+    )
+}
+
+/// Writes a table, tensor or contact graph as CSV: one header row (`name [unit]`, see
+/// [`header`]) and the data rows; provenance and exact names/units in the
+/// [`csv_sidecar`] `x.csv.json`.
 pub fn write_csv(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
     match a {
         Artifact::Table(t) => {
             t.validate()?;
-            let head: Vec<String> = t.columns.iter().map(|c| header(&c.name, &c.unit)).collect();
+            let cols: Vec<(String, String, String)> = t
+                .columns
+                .iter()
+                .map(|c| {
+                    let numeric = !matches!(c.data, ColumnData::Str(_));
+                    (
+                        c.name.clone(),
+                        c.unit.clone(),
+                        header(&c.name, &c.unit, numeric),
+                    )
+                })
+                .collect();
+            let head: Vec<String> = cols.iter().map(|c| c.2.clone()).collect();
             let rows = (0..t.rows()).map(|r| {
                 t.columns
                     .iter()
@@ -99,38 +144,36 @@ pub fn write_csv(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
                     })
                     .collect()
             });
-            write_csv_records(path, None, prov, std::iter::once(head).chain(rows))
+            let meta = json!({"kind": "Table", "name": t.name, "columns": columns_json(&cols)});
+            write_csv_records(path, meta, prov, std::iter::once(head).chain(rows))
         }
         Artifact::Tensor(t) => {
             check_tensor(t)?;
-            let cols = *t.shape.last().unwrap_or(&1);
-            let comment = format!(
-                "tensor {} unit={} convention={:?} shape={}",
-                t.name,
-                if t.unit.is_empty() { "1" } else { &t.unit },
-                t.convention,
-                t.shape
-                    .iter()
-                    .map(|s| s.to_string())
-                    .collect::<Vec<_>>()
-                    .join("x")
-            );
+            let cols = (*t.shape.last().unwrap_or(&1)).max(1);
+            let labels = tensor_labels(t, cols);
+            let head: Vec<String> = labels.iter().map(|l| header(l, &t.unit, true)).collect();
             let rows = t
                 .values
-                .chunks(cols.max(1))
+                .chunks(cols)
                 .map(|r| r.iter().map(|&x| fmt_f64(x)).collect());
-            write_csv_records(path, Some(comment), prov, rows)
+            let meta = json!({
+                "kind": "Tensor", "name": t.name, "unit": t.unit,
+                "convention": format!("{:?}", t.convention), "shape": t.shape,
+                "columns": labels,
+            });
+            write_csv_records(path, meta, prov, std::iter::once(head).chain(rows))
         }
         Artifact::ContactGraph(g) => {
             g.validate()?;
-            let mut head = vec!["i".into(), "j".into(), "gap [m]".into(), "bonded".into()];
+            let mut cols: Vec<(String, String, String)> =
+                [("i", ""), ("j", ""), ("gap", "m"), ("bonded", "")]
+                    .iter()
+                    .map(|(n, u)| (n.to_string(), u.to_string(), header(n, u, true)))
+                    .collect();
             for (name, a) in &g.bond_attributes {
-                head.push(if a.unit.is_empty() {
-                    name.clone()
-                } else {
-                    format!("{name} [{}]", a.unit)
-                });
+                cols.push((name.clone(), a.unit.clone(), header(name, &a.unit, true)));
             }
+            let head: Vec<String> = cols.iter().map(|c| c.2.clone()).collect();
             let bonds: HashMap<(usize, usize), usize> = g
                 .bonds
                 .iter()
@@ -170,7 +213,8 @@ pub fn write_csv(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
                         .filter(|(_, b)| !contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))))
                         .map(|(k, b)| row(b[0], b[1], None, Some(k))),
                 );
-            write_csv_records(path, None, prov, std::iter::once(head).chain(rows))
+            let meta = json!({"kind": "ContactGraph", "columns": columns_json(&cols)});
+            write_csv_records(path, meta, prov, std::iter::once(head).chain(rows))
         }
         other => Err(format!(
             "csv takes a Table, a Tensor or a ContactGraph, not a {}",
@@ -191,15 +235,17 @@ fn check_tensor(t: &Tensor) -> Result<(), String> {
     Ok(())
 }
 
-/// Reads a table written by [`write_csv`] (or any CSV with one header row): a column whose
-/// cells all parse as integers is I64, else as numbers F64, else text.
+/// Reads a table written by [`write_csv`] (or any CSV with one header row; `#` comment lines,
+/// as files written before the sidecar had, are skipped): a column whose cells all parse as
+/// integers is I64, else as numbers F64, else text. Names and units come from the sidecar
+/// `x.csv.json` when it describes these columns, else from the `name [unit]` headers.
 pub fn read_table_csv(path: &Path) -> Result<Table, String> {
     let at = |e: String| format!("{}: {e}", path.display());
     let mut r = csv::ReaderBuilder::new()
         .comment(Some(b'#'))
         .from_path(path)
         .map_err(|e| at(csv_err(e)))?;
-    let heads: Vec<(String, String)> = r
+    let mut heads: Vec<(String, String)> = r
         .headers()
         .map_err(|e| at(csv_err(e)))?
         .iter()
@@ -225,6 +271,27 @@ pub fn read_table_csv(path: &Path) -> Result<Table, String> {
             .map(|s| s.to_string_lossy().into_owned())
             .unwrap_or_default(),
     );
+    // Our own sidecar holds the exact names and units (a dimensionless unit written "1" in
+    // the header may have been "" in the table) and the table's name.
+    if let Some(meta) = std::fs::read_to_string(csv_sidecar(path))
+        .ok()
+        .and_then(|text| serde_json::from_str::<Value>(&text).ok())
+        .filter(|m| m["kind"] == "Table")
+    {
+        let cols = meta["columns"].as_array().cloned().unwrap_or_default();
+        if cols.len() == heads.len()
+            && cols
+                .iter()
+                .zip(&heads)
+                .all(|(c, (n, _))| c["name"].as_str() == Some(n.as_str()))
+        {
+            heads = cols
+                .iter()
+                .map(|c| (s(&c["name"]), s(&c["unit"])))
+                .collect();
+            t.name = s(&meta["name"]);
+        }
+    }
     for ((name, unit), col) in heads.into_iter().zip(cells) {
         let data = if let Ok(v) = col.iter().map(|s| s.parse::<i64>()).collect() {
             ColumnData::I64(v)
@@ -453,8 +520,10 @@ crate::vtk_xml::exporter!(
     "csv",
     &["csv"],
     [Table, Tensor, ContactGraph],
-    "CSV: tables (header `name [unit]`), tensors (matrix rows after a `#` line with unit and \
-     convention), contact graphs (i, j, gap, bonded, bond attributes)",
+    "CSV that a plain pandas.read_csv reads: one header row (`name [unit]`, `[1]` when \
+     dimensionless) and the data rows; tables, tensors (matrix rows under `xx [Pa]` .. \
+     labels), contact graphs (i, j, gap, bonded, bond attributes). Provenance, names, units, \
+     tensor convention and shape go to the sidecar `<file>.csv.json`",
     write_csv
 );
 crate::vtk_xml::exporter!(

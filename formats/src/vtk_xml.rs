@@ -294,7 +294,49 @@ impl Poly {
     }
 }
 
-fn packing_poly(p: &Packing, prov: &Provenance) -> Result<Poly, String> {
+/// What the `.vtp` of a periodic packing does with spheres whose centre lies outside the box
+/// (clump spheres of a body near a periodic face): keep them (`as_is`), map the centres
+/// into the box along the periodic axes (`wrap`, every sphere appears once, pieces of a clump
+/// on both sides), or drop them (`clip`). Non-periodic axes are never changed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PeriodicSpheres {
+    AsIs,
+    Wrap,
+    Clip,
+}
+
+impl PeriodicSpheres {
+    pub const NAMES: [&'static str; 3] = ["as_is", "wrap", "clip"];
+
+    pub fn from_name(s: &str) -> Option<Self> {
+        match s {
+            "as_is" => Some(Self::AsIs),
+            "wrap" => Some(Self::Wrap),
+            "clip" => Some(Self::Clip),
+            _ => None,
+        }
+    }
+}
+
+/// `centre` mapped into [min, max) along each periodic axis.
+fn wrap_into(centre: [f64; 3], min: [f64; 3], max: [f64; 3], periodic: [bool; 3]) -> [f64; 3] {
+    let mut c = centre;
+    for a in 0..3 {
+        let len = max[a] - min[a];
+        if periodic[a] && len > 0.0 {
+            let w = min[a] + (c[a] - min[a]).rem_euclid(len);
+            // rem_euclid can round up to exactly `len`.
+            c[a] = if w >= max[a] { min[a] } else { w };
+        }
+    }
+    c
+}
+
+fn packing_poly(
+    p: &Packing,
+    prov: &Provenance,
+    periodic_mode: PeriodicSpheres,
+) -> Result<Poly, String> {
     for (name, a) in &p.attributes {
         if a.values.len() != p.bodies.len() {
             return Err(format!(
@@ -310,7 +352,21 @@ fn packing_poly(p: &Packing, prov: &Provenance) -> Result<Poly, String> {
     }) {
         return Err("a clump body refers to a missing clump library entry".into());
     }
-    let spheres = p.world_spheres();
+    let (min, max, periodic) = (p.domain.min, p.domain.max, p.domain.periodic);
+    let spheres: Vec<_> = p
+        .world_spheres()
+        .into_iter()
+        .filter_map(|mut s| match periodic_mode {
+            PeriodicSpheres::AsIs => Some(s),
+            PeriodicSpheres::Wrap => {
+                s.center = wrap_into(s.center, min, max, periodic);
+                Some(s)
+            }
+            PeriodicSpheres::Clip => (0..3)
+                .all(|a| !periodic[a] || (min[a]..max[a]).contains(&s.center[a]))
+                .then_some(s),
+        })
+        .collect();
     let points: Vec<f64> = spheres.iter().flat_map(|s| s.center).collect();
     let radius: Vec<f64> = spheres.iter().map(|s| s.radius).collect();
     let body: Vec<i64> = spheres.iter().map(|s| s.body as i64).collect();
@@ -325,6 +381,18 @@ fn packing_poly(p: &Packing, prov: &Provenance) -> Result<Poly, String> {
         Array::new("layer", 1, &layer),
         Array::new("frozen", 1, &frozen),
     ];
+    // Which library clump each sphere's body is (as `clump_index` in the .h5), so clump
+    // shapes can be told apart; -1 for plain spheres. Only packings with clumps carry it.
+    if p.library.is_some() {
+        let clump: Vec<i64> = spheres
+            .iter()
+            .map(|s| match p.bodies[s.body].shape {
+                grainpipe_core::BodyShape::Clump { index } => index as i64,
+                grainpipe_core::BodyShape::Sphere { .. } => -1,
+            })
+            .collect();
+        point_data.push(Array::new("clump_index", 1, &clump));
+    }
     for (name, a) in &p.attributes {
         let v: Vec<f64> = spheres.iter().map(|s| a.values[s.body]).collect();
         point_data.push(Array::new(name, 1, &v));
@@ -440,8 +508,18 @@ pub fn write_vti(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), Str
 }
 
 pub fn write_vtp(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    write_vtp_with(a, path, prov, PeriodicSpheres::AsIs)
+}
+
+/// Writes a `.vtp`; `periodic` applies to packings (a contact graph is written as is).
+pub fn write_vtp_with(
+    a: &Artifact,
+    path: &Path,
+    prov: &Provenance,
+    periodic: PeriodicSpheres,
+) -> Result<(), String> {
     let poly = match a {
-        Artifact::Packing(p) => packing_poly(p, prov)?,
+        Artifact::Packing(p) => packing_poly(p, prov, periodic)?,
         Artifact::ContactGraph(g) => graph_poly(g, prov)?,
         other => {
             return Err(format!(
@@ -595,6 +673,47 @@ fn pvd_extension<'a>(
 }
 
 macro_rules! exporter {
+    // A format with options: `$options` lists them, `$check` validates their values at
+    // preflight, `$write_with` writes with the engine-filled options (`$write` with the
+    // defaults is what callers without options get).
+    ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr, $write:path,
+     options: $options:expr, check: $check:path, write_with: $write_with:path) => {
+        pub struct $ty;
+        impl grainpipe_core::Exporter for $ty {
+            fn name(&self) -> &'static str { $name }
+            fn extensions(&self) -> &'static [&'static str] { $ext }
+            fn accepts(&self, kind: grainpipe_core::ArtifactKind) -> bool {
+                matches!(kind, $(grainpipe_core::ArtifactKind::$kind)|*)
+            }
+            fn doc(&self) -> &'static str { $doc }
+            fn write(
+                &self,
+                a: &grainpipe_core::Artifact,
+                path: &std::path::Path,
+                prov: &grainpipe_core::Provenance,
+            ) -> Result<(), String> {
+                $write(a, path, prov)
+            }
+            fn options(&self) -> Vec<grainpipe_core::registry::ExportOption> {
+                $options
+            }
+            fn check_options(
+                &self,
+                options: &grainpipe_core::registry::ExportOptions,
+            ) -> Result<(), (String, String)> {
+                $check(options)
+            }
+            fn write_with(
+                &self,
+                a: &grainpipe_core::Artifact,
+                path: &std::path::Path,
+                prov: &grainpipe_core::Provenance,
+                options: &grainpipe_core::registry::ExportOptions,
+            ) -> Result<(), String> {
+                $write_with(a, path, prov, options)
+            }
+        }
+    };
     ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr, $write:path) => {
         pub struct $ty;
         impl grainpipe_core::Exporter for $ty {
@@ -632,9 +751,53 @@ exporter!(
     &["vtp"],
     [Packing, ContactGraph],
     "VTK XML PolyData: a packing as one point per sphere (radius, body_id, layer, frozen, \
-     body attributes) or a contact graph as lines (gap, bonded)",
-    write_vtp
+     clump_index when the packing has clumps, body attributes) or a contact graph as lines \
+     (gap, bonded) between the body centres (body_id, coordination)",
+    write_vtp,
+    options: vec![grainpipe_core::registry::ExportOption {
+        name: "periodic",
+        doc: "packings in a periodic box: `as_is` writes every sphere where its body puts it \
+              (clump spheres may stick out of the box), `wrap` maps sphere centres into the \
+              box along the periodic axes, `clip` drops spheres whose centre is outside the \
+              box along a periodic axis (for pictures of the box)",
+        default: grainpipe_core::serde_json::json!("as_is"),
+    }],
+    check: check_vtp_options,
+    write_with: write_vtp_options
 );
+
+fn vtp_periodic(
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<PeriodicSpheres, (String, String)> {
+    match options.get("periodic") {
+        None => Ok(PeriodicSpheres::AsIs),
+        Some(v) => v
+            .as_str()
+            .and_then(PeriodicSpheres::from_name)
+            .ok_or_else(|| {
+                (
+                    "periodic".into(),
+                    format!("{v} is not one of: {}", PeriodicSpheres::NAMES.join(", ")),
+                )
+            }),
+    }
+}
+
+fn check_vtp_options(
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<(), (String, String)> {
+    vtp_periodic(options).map(|_| ())
+}
+
+fn write_vtp_options(
+    a: &Artifact,
+    path: &Path,
+    prov: &Provenance,
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<(), String> {
+    let mode = vtp_periodic(options).map_err(|(k, m)| format!("option `{k}`: {m}"))?;
+    write_vtp_with(a, path, prov, mode)
+}
 exporter!(
     PvdExporter,
     "pvd",
@@ -1389,6 +1552,79 @@ mod tests {
             "{pts:?}"
         );
         assert_eq!(f64s(&f, "DataArray", "offsets"), [1.0, 2.0, 3.0]);
+        assert_eq!(f64s(&f, "DataArray", "clump_index"), [-1.0, 0.0, 0.0]);
+    }
+
+    /// A clump body at x = 0.95 in a unit box periodic along x only, spheres offset
+    /// +-0.1 along x and +0.1 along y (y not periodic, so the y offset is never wrapped).
+    fn straddling_packing() -> Packing {
+        let mut p = Packing::new(Domain::boxed([0.0; 3], [1.0; 3], [true, false, false]));
+        let mut b = Body::sphere([0.95, 0.95, 0.5], 0.0);
+        b.shape = BodyShape::Clump { index: 0 };
+        p.bodies.push(b);
+        p.library = Some(ClumpLibrary {
+            clumps: vec![Clump {
+                spheres: [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0], [0.0, 0.1, 0.0]]
+                    .map(|offset| ClumpSphere {
+                        offset,
+                        radius: 0.05,
+                    })
+                    .to_vec(),
+                volume: 1.0,
+                bounding_radius: 0.15,
+                principal_inertia: [1.0; 3],
+                principal_axes: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                source: String::new(),
+            }],
+            source: String::new(),
+        });
+        p
+    }
+
+    #[test]
+    fn vtp_periodic_modes_keep_wrap_or_clip_spheres_outside_the_box() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.vtp");
+        let a = Artifact::Packing(straddling_packing());
+        let xs = |mode| {
+            write_vtp_with(&a, &path, &Provenance::default(), mode).unwrap();
+            let f = VtkFile::open(&path).unwrap();
+            let pts = f64s(&f, "DataArray", "Points");
+            let x: Vec<f64> = pts.chunks(3).map(|p| p[0]).collect();
+            let y: Vec<f64> = pts.chunks(3).map(|p| p[1]).collect();
+            (x, y, f64s(&f, "DataArray", "radius"))
+        };
+        let close = |a: &[f64], b: &[f64]| {
+            a.len() == b.len() && a.iter().zip(b).all(|(x, y)| (x - y).abs() < 1e-12)
+        };
+        let (x, y, _) = xs(PeriodicSpheres::AsIs);
+        assert!(
+            close(&x, &[1.05, 0.85, 0.95]) && close(&y, &[0.95, 0.95, 1.05]),
+            "{x:?}"
+        );
+        // wrap: 1.05 -> 0.05 along periodic x; y = 1.05 stays (y is not periodic).
+        let (x, y, r) = xs(PeriodicSpheres::Wrap);
+        assert!(
+            close(&x, &[0.05, 0.85, 0.95]) && close(&y, &[0.95, 0.95, 1.05]),
+            "{x:?}"
+        );
+        assert_eq!(r, [0.05; 3]);
+        // clip: the sphere at x = 1.05 goes; the one at y = 1.05 stays (y not periodic).
+        let (x, y, r) = xs(PeriodicSpheres::Clip);
+        assert!(
+            close(&x, &[0.85, 0.95]) && close(&y, &[0.95, 1.05]),
+            "{x:?}"
+        );
+        assert_eq!(r.len(), 2);
+    }
+
+    #[test]
+    fn wrap_maps_the_upper_face_to_the_lower() {
+        let w = wrap_into([1.0, -0.25, 2.5], [0.0; 3], [1.0; 3], [true; 3]);
+        assert_eq!(w, [0.0, 0.75, 0.5]);
+        // A tiny negative offset rounds to exactly the box length; it must land inside.
+        let w = wrap_into([-1e-300, 0.5, 0.5], [0.0; 3], [1.0; 3], [true; 3]);
+        assert!((0.0..1.0).contains(&w[0]), "{w:?}");
     }
 
     #[test]

@@ -131,9 +131,11 @@ fn broken_stacks_are_refused_in_preflight() {
         ImportTiff.preflight(&p, &Default::default()),
         Err(StageError::InvalidParam { .. })
     ));
-    // No voxel size.
+    // No voxel size: a stack without calibration and no `spacing`.
+    let bare = dir.path().join("bare.tif");
+    write_multipage(&bare, [4, 4, 2]);
     let p = TiffParams {
-        path: junk.to_str().unwrap().into(),
+        path: bare.to_str().unwrap().into(),
         ..Default::default()
     };
     assert!(

@@ -4,10 +4,8 @@
 //! Ctrl-C.
 
 use crate::{convert, guarded, panic_text, registry, to_py_err};
-use grainpipe_cli::{available_memory, describe, PluginLoader};
-use grainpipe_core::engine::{
-    self, Observer, Plan, PlanOptions, PlannedStep, RunOptions, RunResult, StepStats,
-};
+use grainpipe_cli::{describe, plan_pipeline, PlanRequest, PluginLoader};
+use grainpipe_core::engine::{self, Observer, Plan, PlannedStep, RunOptions, RunResult, StepStats};
 use grainpipe_core::pipeline::{PipelineDoc, PipelineError as CoreError};
 use grainpipe_core::stage::{Level, Reporter};
 use grainpipe_core::Registry;
@@ -40,7 +38,7 @@ struct Request {
 type Located = Box<(CoreError, Option<String>)>;
 
 /// The document, its source text (for error snippets) and the plan, or the error with the
-/// source text it refers to.
+/// source text it refers to. Planning is `pipe`'s own ([`grainpipe_cli::plan_pipeline`]).
 fn load_and_plan(
     req: &Request,
     registry: &mut Registry,
@@ -63,31 +61,15 @@ fn load_and_plan(
         let src = (e.file == path).then(|| text.clone());
         Box::new((e, src))
     };
-    let mut doc = PipelineDoc::parse(&path, text.clone()).map_err(with_src)?;
-    loader.load_for(registry, &doc).map_err(with_src)?;
-    for o in &req.overrides {
-        doc.apply_override(o).map_err(with_src)?;
-    }
-    if let Some(s) = req.seed {
-        doc.seed = s;
-    }
-    let mut targets = req.targets.clone();
-    if !req.exports {
-        doc.exports.clear();
-        // Without exports nothing would be needed: compute every step unless told which.
-        if targets.is_empty() {
-            targets = doc.steps.iter().map(|s| s.id.clone()).collect();
-        }
-    }
-    if let Some(dir) = &req.out_dir {
-        doc.redirect_exports(dir);
-    }
-    let opts = PlanOptions {
-        targets,
-        memory_limit: available_memory(),
+    let doc = PipelineDoc::parse(&path, text.clone()).map_err(with_src)?;
+    let plan_req = PlanRequest {
+        overrides: req.overrides.clone(),
+        seed: req.seed,
+        targets: req.targets.clone(),
+        skip_exports: !req.exports,
+        out_dir: req.out_dir.clone(),
     };
-    let plan = engine::plan(&doc, registry, &opts).map_err(with_src)?;
-    Ok((doc, plan))
+    plan_pipeline(doc, registry, loader, &plan_req).map_err(with_src)
 }
 
 fn prepare(py: Python<'_>, req: &Request) -> PyResult<(PipelineDoc, Plan, Registry)> {
@@ -249,8 +231,9 @@ fn event_dict<'py>(py: Python<'py>, e: Event, count: usize) -> PyResult<Bound<'p
     Ok(d)
 }
 
-/// Provenance of a step's outputs, the entries the exporters write into files (the same
-/// keys as the engine's, except the timings, which are not a property of the result).
+/// Provenance of a step's outputs, the entries the exporters write into files: the same
+/// keys and values as the engine's (private to it), except the timings, which are not a
+/// property of the result. tests/python compares them with an exported file's.
 fn provenance<'py>(
     py: Python<'py>,
     doc: &PipelineDoc,
@@ -277,7 +260,26 @@ fn provenance<'py>(
             .collect();
         d.set_item("input_files_blake3", files.join(", "))?;
     }
-    d.set_item("pipeline_yaml", &doc.source)?;
+    // As the engine: the file as written when nothing was overridden, else what ran.
+    if doc.overrides.is_empty() && doc.seed == doc.file_seed {
+        d.set_item("pipeline_yaml", &doc.source)?;
+    } else {
+        d.set_item("pipeline_yaml", doc.effective_yaml())?;
+        if !doc.overrides.is_empty() {
+            let sets: Vec<String> = doc
+                .overrides
+                .iter()
+                .map(|o| format!("--set {}", o.text))
+                .collect();
+            d.set_item("overrides", sets.join("\n"))?;
+        }
+        if doc.seed != doc.file_seed {
+            d.set_item(
+                "seed_override",
+                format!("--seed {} (the file says {})", doc.seed, doc.file_seed),
+            )?;
+        }
+    }
     Ok(d)
 }
 

@@ -7,7 +7,6 @@ the numbers computed in Rust from the artifacts themselves. Field values follow 
 value(x, y, z, k) = x + 100 y + 10000 z + 0.25 k, so a swapped axis cannot pass.
 """
 
-import csv
 import json
 import math
 import os
@@ -20,6 +19,7 @@ import pytest
 os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
 
 import h5py  # noqa: E402
+import pandas as pd  # noqa: E402
 import netCDF4  # noqa: E402
 import pyvista as pv  # noqa: E402
 
@@ -163,7 +163,9 @@ def test_h5py_phase_image(samples):
     dims, spacing, origin = grid(m)
     with h5py.File(d / "phase.h5", "r") as f:
         assert f.attrs["grainpipe_kind"] == "PhaseImage"
-        assert f.attrs["seed"] == m["provenance"]["seed"]
+        # Seeds are u64 attributes: numbers in h5py, the exact 64-bit value.
+        assert f.attrs["seed"] == int(m["provenance"]["seed"])
+        assert f.attrs["seed"].dtype == np.uint64
         ds = f["phase"]
         assert ds.shape == tuple(reversed(dims))
         np.testing.assert_array_equal(ds.attrs["spacing"], spacing)
@@ -176,7 +178,7 @@ def test_h5py_field(samples):
     d, m = samples
     with h5py.File(d / "field.h5", "r") as f:
         ds = f[f.attrs["dataset"]]
-        assert ds.attrs["unit"] == "m/s"
+        assert ds.attrs["units"] == "m/s"
         np.testing.assert_array_equal(ds[()], expected_field(m))
 
 
@@ -201,7 +203,8 @@ def test_h5py_packing(samples):
         assert list(f["clump_index"][()]) == [-1, -1, 0]
         assert f["library/sphere_radius"].shape == (2,)
         t = f["attributes/peak_temperature"]
-        assert t.attrs["unit"] == "K"
+        assert t.attrs["units"] == "K"
+        assert f["positions"].attrs["units"] == "m" and f["radius"].attrs["units"] == "m"
         np.testing.assert_array_equal(t[()], [300.0, 450.5, 1200.25])
         np.testing.assert_array_equal(f["domain"].attrs["max"], [1e-3] * 3)
 
@@ -219,7 +222,8 @@ def test_h5py_graph_table_tensor_series(samples):
         assert g.attrs["name"] == t["name"]
         for c in t["columns"]:
             ds = g[c["name"]]
-            assert ds.attrs["unit"] == c["unit"]
+            if c["name"] != "note":  # text has no unit; dimensionless is "1"
+                assert ds.attrs["units"] == (c["unit"] or "1")
         np.testing.assert_array_equal(g["time"][()], t["time"])
         np.testing.assert_array_equal(g["step"][()], t["step"])
         assert [s.decode() for s in g["note"][()]] == t["note"]
@@ -254,7 +258,7 @@ def test_netcdf_phase_image(samples):
         check_nc_coords(ds, m)
         assert list(v.flag_values) == [p["id"] for p in m["phase"]["phases"]]
         assert v.flag_meanings.split() == ["pore", "grain", "base_plate"]
-        assert ds.seed == m["provenance"]["seed"]
+        assert ds.seed == int(m["provenance"]["seed"])  # NC_UINT64
         check_fractions(np.asarray(v[:]), m)
 
 
@@ -274,25 +278,29 @@ def test_netcdf_field(samples):
 def test_csv_and_json(samples):
     d, m = samples
     t = m["table"]
-    with open(d / "table.csv", newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and not r[0].startswith("#")]
-    assert rows[0] == ["time [s]", "step", "neck radius [m]", "note"]
-    assert [float(r[0]) for r in rows[1:]] == t["time"]
-    assert [float(r[2]) for r in rows[1:]] == t["neck radius"]
-    assert [r[3] for r in rows[1:]] == t["note"]
+    # A plain read_csv: the first row is the header, numbers are numbers.
+    df = pd.read_csv(d / "table.csv")
+    assert list(df.columns) == ["time [s]", "step [1]", "neck radius [m]", "note"]
+    assert df["time [s]"].tolist() == t["time"]
+    assert df["step [1]"].dtype == np.int64 and df["step [1]"].tolist() == t["step"]
+    assert df["neck radius [m]"].tolist() == t["neck radius"]
+    assert df["note"].fillna("").tolist() == t["note"]
+    side = json.loads((d / "table.csv.json").read_text())
+    assert [c["name"] for c in side["columns"]] == [c["name"] for c in t["columns"]]
+    assert side["provenance"]["seed"] == m["provenance"]["seed"]
     j = json.loads((d / "table.json").read_text())
     assert [c["name"] for c in j["columns"]] == [c["name"] for c in t["columns"]]
     assert j["columns"][2]["values"] == t["neck radius"]
-    lines = (d / "tensor.csv").read_text().splitlines()
-    assert lines[0].startswith("#") and "convention=Mandel" in lines[0] and "unit=Pa" in lines[0]
-    mat = np.array([[float(x) for x in line.split(",")] for line in lines[1:] if not line.startswith("#")])
-    np.testing.assert_array_equal(mat.ravel(), m["tensor"]["values"])
+    tensor = pd.read_csv(d / "tensor.csv")
+    assert list(tensor.columns) == [f"{c} [Pa]" for c in ("xx", "yy", "zz", "yz", "xz", "xy")]
+    np.testing.assert_array_equal(tensor.to_numpy().ravel(), m["tensor"]["values"])
+    tside = json.loads((d / "tensor.csv.json").read_text())
+    assert tside["convention"] == "Mandel" and tside["unit"] == "Pa" and tside["shape"] == [6, 6]
     tj = json.loads((d / "tensor.json").read_text())
     np.testing.assert_array_equal(np.array(tj["values"]).ravel(), m["tensor"]["values"])
-    with open(d / "graph.csv", newline="") as fh:
-        g = [r for r in csv.reader(fh) if r and not r[0].startswith("#")]
-    assert g[0] == ["i", "j", "gap [m]", "bonded"]
-    assert [[int(r[0]), int(r[1])] for r in g[1:]] == m["graph"]["lines"]
-    assert g[3][2] == "" and [int(r[3]) for r in g[1:]] == m["graph"]["bonded"]
+    g = pd.read_csv(d / "graph.csv")
+    assert list(g.columns)[:4] == ["i [1]", "j [1]", "gap [m]", "bonded [1]"]
+    assert g[["i [1]", "j [1]"]].to_numpy().tolist() == m["graph"]["lines"]
+    assert np.isnan(g["gap [m]"][2]) and g["bonded [1]"].tolist() == m["graph"]["bonded"]
     gj = json.loads((d / "graph.json").read_text())
     assert gj["faces"]["zmin"] == m["graph"]["faces"]["zmin"]

@@ -324,3 +324,152 @@ def test_sigint_cancels_at_next_checkpoint(tmp_path):
     assert time.monotonic() - started < 30
     # Nothing of the interrupted step: no export, no cache entry for it.
     assert not list((tmp_path / "run").rglob("image*"))
+
+
+def _same_attr(got, want):
+    """An attribute value as xarray holds it against the one netCDF4 reads from the file:
+    strings equal, numbers (scalars or arrays) equal element for element."""
+    if isinstance(want, str):
+        return got == want
+    want = np.atleast_1d(np.asarray(want))
+    got = np.atleast_1d(np.asarray(got))
+    if want.dtype.kind in "OUS":
+        return [str(x) for x in got] == [str(x) for x in want]
+    return got.shape == want.shape and np.array_equal(got, want)
+
+
+def test_to_xarray_equals_netcdf_export(exported, result):
+    import xarray as xr
+
+    img = result["voxels.image"]
+    da = img.to_xarray()
+    assert isinstance(da, xr.DataArray)
+    with netCDF4.Dataset(exported / "image.nc") as nc:
+        var = nc.variables["phase"]
+        assert da.name == "phase"
+        assert da.dims == var.dimensions
+        np.testing.assert_array_equal(da.values, var[:])
+        # Coordinates: voxel centres in metres, exactly the file's, with the same attributes.
+        for a in "xyz":
+            c = nc.variables[a]
+            np.testing.assert_array_equal(da.coords[a].values, c[:])
+            assert dict(da.coords[a].attrs) == {k: c.getncattr(k) for k in c.ncattrs()}
+        # The variable's CF attributes and the file's global ones (grid and provenance),
+        # except the timings, which describe a run rather than the result.
+        want = {k: nc.getncattr(k) for k in nc.ncattrs()}
+        want.update({k: var.getncattr(k) for k in var.ncattrs()})
+        want.pop("stage_timings_s")
+        assert set(da.attrs) == set(want), set(da.attrs) ^ set(want)
+        for k, v in want.items():
+            if k == "pipeline_yaml":
+                # The Python run writes no files, so its effective pipeline has no
+                # `export:` list; everything that determines the numbers must agree.
+                import yaml
+
+                got_doc, want_doc = yaml.safe_load(da.attrs[k]), yaml.safe_load(v)
+                got_doc.pop("export", None)
+                want_doc.pop("export", None)
+                assert got_doc == want_doc, (got_doc, want_doc)
+                continue
+            assert _same_attr(da.attrs[k], v), (k, da.attrs[k], v)
+        # CF: flag_values have the variable's type.
+        assert np.asarray(da.attrs["flag_values"]).dtype == var.dtype
+        # Seeds are numbers in the file (uint64), exact.
+        assert da.attrs["seed"] == SEED and np.asarray(da.attrs["seed"]).dtype == np.uint64
+    # The provenance is a plain dict of strings, the entries the exported files carry.
+    assert isinstance(img.provenance, dict)
+    assert all(isinstance(v, str) for v in img.provenance.values())
+    assert da.coords["x"].values[0] == img.origin[0] + 0.5 * img.spacing[0]
+
+
+def test_to_pandas_equals_exported_csv(exported, result):
+    import pandas as pd
+
+    for port, name in [("pack.report", "rsa.csv"), ("voxels.report", "voxelize.csv")]:
+        t = result[port]
+        df = t.to_pandas()
+        assert isinstance(df, pd.DataFrame)
+        assert df.attrs["units"] == t.units
+        # Provenance lines, wherever the writer puts them, are `#` comments; round_trip
+        # parses each decimal to the double it was printed from.
+        csv = pd.read_csv(exported / name, comment="#", float_precision="round_trip")
+        assert len(csv) == len(df) > 0
+        assert len(csv.columns) == len(df.columns)
+        for col, header in zip(df.columns, csv.columns):
+            unit = t.units[col]
+            assert header == (f"{col} [{unit}]" if unit else col)
+            got, want = df[col].to_numpy(), csv[header].to_numpy()
+            if want.dtype.kind == "f" or got.dtype.kind == "f":
+                np.testing.assert_array_equal(got.astype(float), want.astype(float))
+            else:
+                assert [str(x) for x in got] == [str(x) for x in want], col
+
+
+def test_packing_to_pyvista_is_ready_to_glyph(result):
+    p = result["pack.packing"]
+    poly = p.to_pyvista()
+    assert poly.n_points == len(p)
+    np.testing.assert_array_equal(np.asarray(poly.points), p.positions)
+    np.testing.assert_array_equal(poly.point_data["radius"], p.radii)
+    # Glyphing by radius: a unit sphere scaled by each radius spans the packing's bounds.
+    glyphs = poly.glyph(scale="radius", geom=pv.Sphere(radius=1.0), orient=False)
+    lo = (p.positions - p.radii[:, None]).min(axis=0)
+    hi = (p.positions + p.radii[:, None]).max(axis=0)
+    b = np.asarray(glyphs.bounds).reshape(3, 2)
+    # Sphere facets lie inside the true sphere: at most 1 % of a radius short.
+    tol = 0.01 * p.radii.max()
+    assert np.all(np.abs(b[:, 0] - lo) < tol) and np.all(np.abs(b[:, 1] - hi) < tol), (b, lo, hi)
+    one = p.to_pyvista(spheres=True)
+    # Spheres: one body each, so the per-sphere view has the same points.
+    assert one.n_points == len(p.sphere_radii) == len(p)
+
+
+def test_tqdm_progress_runs(result, capsys):
+    import tqdm  # noqa: F401  (the default display when it is installed)
+
+    r = gp.run(SPHERES, set=SET, seed=SEED, cache=False, exports=False)
+    err = capsys.readouterr().err
+    assert "[1/2] pack (packing.rsa)" in err and "[2/2] voxels (voxelize.packing)" in err, err
+    np.testing.assert_array_equal(r["voxels.image"].array, result["voxels.image"].array)
+
+
+def test_tqdm_bar_never_moves_back(capsys):
+    show = gp._progress_callback(None)
+    show({"event": "start", "step": "s", "stage": "x", "index": 0, "count": 1})
+    show({"event": "progress", "step": "s", "done": 700, "total": 1000})
+    show({"event": "progress", "step": "s", "done": 100, "total": 1000})
+    # A new total keeps the shown fraction: 1 of 4 after 70 % shows 3 of 4.
+    show({"event": "progress", "step": "s", "done": 1, "total": 4})
+    show({"event": "finish", "step": "s", "wall_s": 0.1, "from_cache": False})
+    err = capsys.readouterr().err
+    assert " 70%" in err and " 75%" in err, err
+    assert " 10%" not in err and " 25%" not in err, err
+
+
+def _human_bytes(b):
+    """`pipe`'s rendering of a byte count (core engine::human_bytes)."""
+    units = ["B", "KiB", "MiB", "GiB", "TiB"]
+    v, u = float(b), 0
+    while v >= 1024 and u + 1 < len(units):
+        v /= 1024
+        u += 1
+    return f"{b} B" if u == 0 else f"{v:.1f} {units[u]}"
+
+
+def test_validate_returns_the_plan_pipe_validate_prints():
+    plan = gp.validate(SPHERES, set=SET, seed=SEED)
+    args = [PIPE, "validate", str(SPHERES), "--seed", str(SEED)]
+    for k, v in SET.items():
+        args += ["--set", f"{k}={v}"]
+    text = subprocess.run(args, check=True, capture_output=True, text=True).stdout
+    assert f"estimated memory: {_human_bytes(plan['memory_bytes'])}" in text, text
+    for s in plan["steps"]:
+        assert f"{s['id']:16} {s['stage']:22} ~{_human_bytes(s['memory_bytes'])}" in text, text
+    grid = plan["steps"][1]["outputs"]["image"]["grid"]
+    assert "grid {}x{}x{} of".format(*grid["dims"]) in text
+    # 200 um at 25 um radius and 20 voxels per diameter: 2.5 um voxels, 80 per edge.
+    assert grid["dims"] == [80, 80, 80]
+    np.testing.assert_allclose(grid["spacing"], [2.5e-6] * 3, rtol=1e-12)
+    assert [e["path"] for e in plan["exports"]] == [
+        line.split("-> ")[1].split(" (")[0] for line in text.splitlines() if "-> " in line
+    ]

@@ -574,7 +574,12 @@ impl TypedStage for Ensemble {
         }
         let mut pf = Preflight::from_info(&self.info(), 1 << 20)
             .announce("summary", ArtifactMeta::of(ArtifactKind::Table));
-        if !p.volume_column.is_empty() {
+        if p.volume_column.is_empty() {
+            // No RVE fit without cell volumes: these outputs are not given, so they are not
+            // announced (an export of them is refused at preflight).
+            pf.outputs.shift_remove("rve");
+            pf.outputs.shift_remove("tradeoff");
+        } else {
             pf = pf
                 .announce("rve", ArtifactMeta::of(ArtifactKind::Table))
                 .announce("tradeoff", ArtifactMeta::of(ArtifactKind::Table));

@@ -105,6 +105,7 @@ fn main() {
             medial,
             lazy,
             max_spheres: 100_000,
+            strict: false,
         };
         let t = Instant::now();
         let r = garcia(&mask, dims, &o).unwrap();
@@ -142,7 +143,8 @@ fn main() {
         count,
         ..SyntheticParams::default()
     };
-    let g = Synthetic.run(&sp, &(), &Inputs::new(), &ctx).unwrap();
+    let law = grainpipe_clumps::grains::sampled_law(&sp).unwrap().0;
+    let g = Synthetic.run(&sp, &law, &Inputs::new(), &ctx).unwrap();
     let t1 = Instant::now();
     let mut inp = Inputs::new();
     inp.insert("grains".into(), Arc::new(g["grains"].clone()));

@@ -106,6 +106,9 @@ pub struct GarciaParams {
     /// sub-samples per voxel edge for the clump's volume and inertia
     #[param(ty = "integer >= 1", default = 2)]
     pub quadrature: usize,
+    /// `centres`: a sphere reaches the nearest background voxel centre (Garcia; no background voxel centre inside the clump, which may spill up to a fraction of a voxel beyond the mask's voxels, column `spill`); `strict`: it reaches the nearest background voxel cube, so the clump lies inside the union of the mask's voxels (spill 0) at the cost of about half a voxel of radius
+    #[param(ty = "one of: centres, strict", default = "centres".into())]
+    pub inner: String,
 }
 
 pub struct Garcia;
@@ -116,7 +119,7 @@ impl TypedStage for Garcia {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "clumps.garcia",
-            "1.0.0",
+            "1.1.0",
             "Each grain mask becomes a connected cluster of overlapping spheres covering \
              a fraction alpha of its voxels: Garcia's greedy set cover (Donval et al. \
              2025, Algorithm 1) with an exact Euclidean distance transform, candidate \
@@ -136,7 +139,7 @@ impl TypedStage for Garcia {
             PortSpec::new(
                 "report",
                 ArtifactKind::Table,
-                "per grain: spheres, candidates, coverage, volume and inertia error vs the mask, connectivity",
+                "per grain: spheres, candidates, coverage, volume and inertia error vs the mask, spill outside the mask's voxels, connectivity",
             ),
         ])
     }
@@ -152,6 +155,12 @@ impl TypedStage for Garcia {
         }
         if !(1..=8).contains(&p.quadrature) {
             return Err(StageError::param("quadrature", "must be in 1..=8"));
+        }
+        if !["centres", "strict"].contains(&p.inner.as_str()) {
+            return Err(StageError::param(
+                "inner",
+                format!("`{}`: use centres or strict", p.inner),
+            ));
         }
         // One clump (and one report row) per grain, or a failure.
         let grains = inputs.get("grains");
@@ -180,6 +189,7 @@ impl TypedStage for Garcia {
             medial: p.medial_surface,
             lazy: p.lazy_heap,
             max_spheres: p.max_spheres,
+            strict: p.inner == "strict",
         };
         let done = std::sync::atomic::AtomicU64::new(0);
         let n = grains.len() as u64;
@@ -240,6 +250,7 @@ pub fn report_table(out: &[GrainClump]) -> Table {
             "",
             f(&|g| g.metrics.symmetric_difference / g.metrics.mask.volume),
         )
+        .with_f64("spill", "", f(&|g| g.metrics.spill_fraction()))
         .with_f64(
             "bounding_diameter",
             "m",

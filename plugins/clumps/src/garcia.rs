@@ -29,6 +29,9 @@ pub struct GarciaOptions {
     pub lazy: bool,
     /// Give up (error) beyond this many spheres.
     pub max_spheres: usize,
+    /// Radii reach the nearest background voxel *cube* instead of its centre, so every
+    /// sphere lies inside the union of the mask's voxels (see [`strict_d2`]).
+    pub strict: bool,
 }
 
 impl Default for GarciaOptions {
@@ -38,20 +41,24 @@ impl Default for GarciaOptions {
             medial: true,
             lazy: true,
             max_spheres: 5000,
+            strict: false,
         }
     }
 }
 
-/// A selected sphere in voxel units: centre index `[x, y, z]`, squared radius `d2`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// A selected sphere in voxel units: centre index `[x, y, z]`, the lattice ball it covers
+/// (`|v|^2 < d2`) and its radius `r` (`sqrt(d2)`, or the strict radius, whose open ball holds
+/// the same lattice points).
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VoxSphere {
     pub center: [usize; 3],
     pub d2: u32,
+    pub r: f64,
 }
 
 impl VoxSphere {
     pub fn radius(&self) -> f64 {
-        (self.d2 as f64).sqrt()
+        self.r
     }
 }
 
@@ -91,6 +98,7 @@ struct Cand {
     y: i32,
     z: i32,
     d2: u32,
+    r: f64,
     idx: u32,
 }
 
@@ -228,7 +236,13 @@ fn containment_table(d2: u32) -> [u64; 3] {
 /// approximation of the medial surface (section 2.1, item 2). The containment test is exact
 /// on the lattice, so every grain voxel stays coverable: a removed ball lies inside a
 /// neighbour's ball, and so on up to a kept one (d2 grows strictly along the chain).
-fn candidates(mask: &[bool], d2: &[u32], dims: [usize; 3], medial: bool) -> Vec<Cand> {
+fn candidates(
+    mask: &[bool],
+    d2: &[u32],
+    radius: &dyn Fn(usize) -> f64,
+    dims: [usize; 3],
+    medial: bool,
+) -> Vec<Cand> {
     let [nx, ny, nz] = dims;
     let mut out = Vec::new();
     let mut offs = Vec::new();
@@ -276,6 +290,7 @@ fn candidates(mask: &[bool], d2: &[u32], dims: [usize; 3], medial: bool) -> Vec<
                     y: y as i32,
                     z: z as i32,
                     d2: d2[i],
+                    r: radius(i),
                     idx: i as u32,
                 });
             }
@@ -287,7 +302,7 @@ fn candidates(mask: &[bool], d2: &[u32], dims: [usize; 3], medial: bool) -> Vec<
 fn overlaps(a: &Cand, b: &Cand) -> bool {
     let d =
         ((a.x - b.x) as f64).powi(2) + ((a.y - b.y) as f64).powi(2) + ((a.z - b.z) as f64).powi(2);
-    let rs = (a.d2 as f64).sqrt() + (b.d2 as f64).sqrt();
+    let rs = a.r + b.r;
     d < rs * rs
 }
 
@@ -305,8 +320,17 @@ pub fn garcia(
     dims: [usize; 3],
     opts: &GarciaOptions,
 ) -> Result<GarciaResult, GarciaFailure> {
-    let d2 = squared_edt(mask, dims);
-    let cands = candidates(mask, &d2, dims, opts.medial);
+    let (d2, strict_r2) = if opts.strict {
+        let (ball, r2) = strict_d2(mask, dims);
+        (ball, Some(r2))
+    } else {
+        (squared_edt(mask, dims), None)
+    };
+    let radius = |i: usize| match &strict_r2 {
+        Some(r2) => r2[i].sqrt(),
+        None => (d2[i] as f64).sqrt(),
+    };
+    let cands = candidates(mask, &d2, &radius, dims, opts.medial);
     let total = mask.iter().filter(|&&b| b).count();
     let mut res = GarciaResult {
         spheres: Vec::new(),
@@ -349,6 +373,7 @@ pub fn garcia(
         res.spheres.push(VoxSphere {
             center: [c.x as usize, c.y as usize, c.z as usize],
             d2: c.d2,
+            r: c.r,
         });
         // Candidates overlapping the new sphere become connected to the cluster; their full
         // ball count is a valid upper bound of their potential coverage.
@@ -461,6 +486,79 @@ pub fn garcia(
     Ok(res)
 }
 
+/// Strict radii: for every mask voxel the squared distance `R^2` from its centre to the
+/// nearest background voxel cube (voxels outside the array count as background), and the
+/// lattice ball of the open sphere of radius R, as the `d2` of `|v|^2 < d2`. The nearest
+/// point of a cube to a voxel centre is a corner, edge midpoint, face centre or the centre
+/// of that cube, all on the half-voxel lattice, so an exact EDT on a doubled grid (a point
+/// is background when it belongs to a background cube) gives R exactly. The sphere of
+/// radius R then lies inside the union of the mask's voxels: the mask's continuous surface.
+pub fn strict_d2(mask: &[bool], dims: [usize; 3]) -> (Vec<u32>, Vec<f64>) {
+    // Doubled coordinates Q = 2 x + 2: Q = 0 and Q = 2 n + 2 are the centres of the
+    // (background) voxels just outside the array.
+    let d = dims.map(|n| 2 * n + 3);
+    let inside = |x: i64, y: i64, z: i64| {
+        x >= 0
+            && y >= 0
+            && z >= 0
+            && (x as usize) < dims[0]
+            && (y as usize) < dims[1]
+            && (z as usize) < dims[2]
+            && mask[x as usize + dims[0] * (y as usize + dims[1] * z as usize)]
+    };
+    // Voxels whose closed cube holds the point at doubled coordinate q: one when q is even
+    // (a centre plane), the two on either side when odd (a face plane).
+    let span = |q: usize| -> (i64, i64) {
+        let v = q as i64 - 2;
+        if v % 2 == 0 {
+            (v / 2, v / 2)
+        } else {
+            ((v - 1).div_euclid(2), (v + 1).div_euclid(2))
+        }
+    };
+    let mut fine = vec![false; d[0] * d[1] * d[2]];
+    for qz in 0..d[2] {
+        let (z0, z1) = span(qz);
+        for qy in 0..d[1] {
+            let (y0, y1) = span(qy);
+            for qx in 0..d[0] {
+                let (x0, x1) = span(qx);
+                let mut all = true;
+                'cubes: for z in z0..=z1 {
+                    for y in y0..=y1 {
+                        for x in x0..=x1 {
+                            if !inside(x, y, z) {
+                                all = false;
+                                break 'cubes;
+                            }
+                        }
+                    }
+                }
+                fine[qx + d[0] * (qy + d[1] * qz)] = all;
+            }
+        }
+    }
+    let e = squared_edt(&fine, d);
+    let mut ball = vec![0u32; mask.len()];
+    let mut r2 = vec![0.0; mask.len()];
+    for z in 0..dims[2] {
+        for y in 0..dims[1] {
+            for x in 0..dims[0] {
+                let i = x + dims[0] * (y + dims[1] * z);
+                if !mask[i] {
+                    continue;
+                }
+                let q = (2 * x + 2) + d[0] * ((2 * y + 2) + d[1] * (2 * z + 2));
+                // Half-voxel units: R^2 = e / 4; lattice points with |v|^2 < e / 4 are those
+                // with |v|^2 < ceil(e / 4).
+                r2[i] = e[q] as f64 / 4.0;
+                ball[i] = e[q].div_ceil(4);
+            }
+        }
+    }
+    (ball, r2)
+}
+
 /// True when the spheres' overlap graph (`|ci - cj| < Ri + Rj`) is connected.
 pub fn is_connected(spheres: &[VoxSphere]) -> bool {
     if spheres.is_empty() {
@@ -506,10 +604,21 @@ pub struct ClumpMetrics {
     pub mask: MassProps,
     /// Volume of the symmetric difference clump XOR mask (voxel^3).
     pub symmetric_difference: f64,
+    /// Volume of the clump outside the union of the mask's voxels (voxel^3): the sub-voxel
+    /// spill of spheres whose radius reaches the nearest background voxel centre.
+    pub spill: f64,
 }
 
 impl ClumpMetrics {
     /// (V_clump - V_mask) / V_mask.
+    /// Share of the clump's volume outside the mask's voxels.
+    pub fn spill_fraction(&self) -> f64 {
+        if self.clump.volume > 0.0 {
+            self.spill / self.clump.volume
+        } else {
+            0.0
+        }
+    }
     pub fn volume_error(&self) -> f64 {
         (self.clump.volume - self.mask.volume) / self.mask.volume
     }
@@ -619,6 +728,7 @@ pub fn clump_metrics(
     let mut mc = Moments::default();
     let mut mm = Moments::default();
     let mut xor = 0.0;
+    let mut spill = 0.0;
     for jz in 0..n[2] {
         let vz = jz / sub; // voxel index + 1
         for jy in 0..n[1] {
@@ -645,6 +755,9 @@ pub fn clump_metrics(
                 }
                 if in_clump != in_mask {
                     xor += 1.0;
+                    if in_clump {
+                        spill += 1.0;
+                    }
                 }
             }
         }
@@ -653,6 +766,7 @@ pub fn clump_metrics(
         clump: mc.props(h),
         mask: mm.props(h),
         symmetric_difference: xor * h * h * h,
+        spill: spill * h * h * h,
     }
 }
 

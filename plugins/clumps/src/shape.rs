@@ -50,6 +50,11 @@ pub fn legendre_table(nmax: usize, x: f64, out: &mut Vec<f64>) {
     }
 }
 
+/// Largest violation of the reality condition a file may show, relative to its largest
+/// coefficient: VCCTL files print 10 decimals of values up to ~2, so rounding leaves
+/// ~1e-10; anything above 1e-6 is a different function, not rounding.
+pub const REALITY_TOLERANCE: f64 = 1e-6;
+
 /// A real radius function as complex SH coefficients `a_nm`, m >= 0 only (the negative
 /// orders follow from `a_{n,-m} = (-1)^m conj(a_nm)`), with the complex orthonormal SH
 /// `Y_n^m = (-1)^m Q_n^m(cos theta) e^{i m phi}` (Condon-Shortley phase, as in VCCTL's
@@ -90,18 +95,49 @@ impl Harmonics {
                 return Err(bad("coefficient (needs |m| <= n, finite values)"));
             }
             nmax = nmax.max(n as usize);
-            rows.push((n as usize, m, re, im));
+            rows.push((n as usize, m, re, im, ln + 1));
         }
         if rows.is_empty() {
             return Err(format!("{}: no coefficients", path.display()));
         }
         let mut coef = vec![(0.0, 0.0); (nmax + 1) * (nmax + 2) / 2];
         let mut seen = vec![false; coef.len()];
-        for (n, m, re, im) in rows {
+        for &(n, m, re, im, _) in &rows {
             if m >= 0 {
                 let k = n * (n + 1) / 2 + m as usize;
                 coef[k] = (re, im);
                 seen[k] = true;
+            }
+        }
+        // A real radius needs a_{n,-m} = (-1)^m conj(a_nm) (so a_n0 is real); only m >= 0
+        // is used, so a file breaking it would silently describe another grain.
+        let largest = rows.iter().map(|r| r.2.hypot(r.3)).fold(0.0, f64::max);
+        let tol = REALITY_TOLERANCE * largest;
+        for &(n, m, re, im, line) in &rows {
+            let k = n * (n + 1) / 2 + m.unsigned_abs() as usize;
+            let (ar, ai) = coef[k];
+            let sign = if m % 2 == 0 { 1.0 } else { -1.0 };
+            let (er, ei) = if m < 0 {
+                (sign * ar, -sign * ai)
+            } else if m == 0 {
+                (re, 0.0)
+            } else {
+                continue;
+            };
+            let dev = (re - er).hypot(im - ei);
+            if dev > tol {
+                let what = if m == 0 {
+                    format!("a_{n},0 must be real")
+                } else {
+                    format!("a_{n},{m} must equal (-1)^{} conj(a_{n},{})", -m, -m)
+                };
+                return Err(format!(
+                    "{}:{line}: coefficient (n, m) = ({n}, {m}) breaks the reality condition \
+                     a_(n,-m) = (-1)^m conj(a_(n,m)) of a real radius ({what}): the violation \
+                     is {dev:.3e}, the tolerance {tol:.3e} ({REALITY_TOLERANCE:e} of the \
+                     largest coefficient {largest:.4e}); fix the file or drop its m < 0 rows",
+                    path.display()
+                ));
             }
         }
         if let Some(k) = seen.iter().position(|s| !s) {

@@ -128,6 +128,7 @@ fn lazy_heap_selects_exactly_the_naive_greedy_spheres() {
                 medial,
                 lazy,
                 max_spheres: 10_000,
+                strict: false,
             };
             let lazy = garcia(&g.mask, g.dims, &opt(true)).unwrap();
             let naive = garcia(&g.mask, g.dims, &opt(false)).unwrap();
@@ -339,8 +340,9 @@ fn synthetic_clumps(
         count,
         ..SyntheticParams::default()
     };
+    let law = grainpipe_clumps::grains::sampled_law(&p).unwrap().0;
     let g = grainpipe_clumps::grains::Synthetic
-        .run(&p, &(), &Inputs::new(), ctx)
+        .run(&p, &law, &Inputs::new(), ctx)
         .unwrap();
     let mut inp = Inputs::new();
     inp.insert("grains".into(), std::sync::Arc::new(g["grains"].clone()));

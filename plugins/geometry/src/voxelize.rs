@@ -1,12 +1,12 @@
 //! `voxelize.packing`: spheres and clumps -> a phase image, with sub-voxel supersampling.
 
-use grainpipe_core::raster::{min_distance, SphereRaster};
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, Phase,
     PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
     WorldSphere,
 };
+use rayon::prelude::*;
 
 #[params]
 pub struct VoxelizeParams {
@@ -198,9 +198,186 @@ impl TypedStage for Voxelize {
     }
 }
 
-/// Labels every voxel; returns the labels and the mean sub-voxel coverage. Spheres are
-/// binned into blocks of voxels (`core::raster`), so each voxel looks only at the spheres
-/// that reach its block, nearest first.
+/// z-planes per slab. A slab is a contiguous piece of the image that one thread owns, so
+/// writes never race and every voxel's label is a function of the spheres alone, whatever the
+/// thread count.
+const SLAB: usize = 8;
+
+/// Periodic images per axis a sphere may span before the cell is refused as far too small.
+const MAX_IMAGES: i64 = 127;
+
+/// One periodic image of a sphere and the voxels its reach covers.
+#[derive(Clone, Copy)]
+struct Image {
+    center: [f64; 3],
+    sphere: usize,
+    /// Inclusive voxel ranges per axis, clipped to the grid.
+    lo: [usize; 3],
+    hi: [usize; 3],
+}
+
+/// Per sphere, the tests "signed distance <= -h", "<= h" and "<= 0" (h = half the voxel
+/// diagonal) as bounds on the squared distance: the signed distance is
+/// `sqrt(d2) - r`, monotone in `d2` in floating point too, so each test holds exactly up to
+/// the largest `d2` that passes it. The image is then the same, bit for bit, as testing
+/// `sqrt(d2) - r` per point, without a square root per point.
+#[derive(Clone, Copy)]
+struct Bounds {
+    full: Option<f64>,
+    touch: Option<f64>,
+    inside: Option<f64>,
+}
+
+/// The largest `t >= 0` with `pred(t)` for a `pred` that holds up to a point and not beyond
+/// (`pred(upper)` false); `None` when `pred(0)` is false. Non-negative doubles order like
+/// their bit patterns, so this bisects the bits.
+fn last_true(upper: f64, pred: impl Fn(f64) -> bool) -> Option<f64> {
+    if !pred(0.0) {
+        return None;
+    }
+    let (mut lo, mut hi) = (0u64, upper.to_bits());
+    debug_assert!(!pred(upper));
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if pred(f64::from_bits(mid)) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Some(f64::from_bits(lo))
+}
+
+fn bounds(r: f64, half_diag: f64) -> Bounds {
+    let upper = 4.0 * (r + half_diag).powi(2) + f64::MIN_POSITIVE;
+    Bounds {
+        full: last_true(upper, |t| t.sqrt() - r <= -half_diag),
+        touch: last_true(upper, |t| t.sqrt() - r <= half_diag),
+        inside: last_true(upper, |t| t.sqrt() - r <= 0.0),
+    }
+}
+
+/// The periodic images of `s` whose reach (radius + `reach`) covers voxel centres, with
+/// their voxel ranges: per axis, unwrapped voxel indices `i = j + k n` see the sphere's image
+/// at `centre - k L` from cell voxel `j`.
+fn images(
+    grid: &Grid,
+    s: &WorldSphere,
+    index: usize,
+    reach: f64,
+    out: &mut Vec<Image>,
+) -> Result<(), StageError> {
+    let extent = grid.extent();
+    let mut per_axis: [Vec<(f64, usize, usize)>; 3] = Default::default();
+    for a in 0..3 {
+        let (o, h, n) = (grid.origin[a], grid.spacing[a], grid.dims[a] as i64);
+        let c = if grid.periodic[a] {
+            o + (s.center[a] - o).rem_euclid(extent[a])
+        } else {
+            s.center[a]
+        };
+        let r = s.radius + reach;
+        // One voxel of slack either side: the exact test is done per voxel.
+        let lo = ((c - r - o) / h - 0.5).floor() as i64 - 1;
+        let hi = ((c + r - o) / h - 0.5).ceil() as i64 + 1;
+        let (kmin, kmax) = if grid.periodic[a] {
+            (lo.div_euclid(n), hi.div_euclid(n))
+        } else {
+            (0, 0)
+        };
+        if kmax - kmin > 2 * MAX_IMAGES {
+            return Err(StageError::failed(format!(
+                "sphere {index} (radius {:.3e} m) reaches over more than {MAX_IMAGES} periodic \
+                 images of the cell along axis {a}: the packing's domain is far too small for it",
+                s.radius
+            )));
+        }
+        for k in kmin..=kmax {
+            let (vlo, vhi) = ((lo - k * n).max(0), (hi - k * n).min(n - 1));
+            if vlo <= vhi {
+                per_axis[a].push((c - k as f64 * extent[a], vlo as usize, vhi as usize));
+            }
+        }
+    }
+    for &(cz, zlo, zhi) in &per_axis[2] {
+        for &(cy, ylo, yhi) in &per_axis[1] {
+            for &(cx, xlo, xhi) in &per_axis[0] {
+                out.push(Image {
+                    center: [cx, cy, cz],
+                    sphere: index,
+                    lo: [xlo, ylo, zlo],
+                    hi: [xhi, yhi, zhi],
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Voxel states while stamping; the largest wins.
+const EMPTY: u8 = 0;
+/// Some sphere surface passes within half a voxel diagonal of the centre.
+const CUT: u8 = 1;
+/// The centre is deeper than half a voxel diagonal inside some sphere.
+const FULL: u8 = 2;
+
+/// The voxels of row (y, z) of `im` (within its x range) whose squared distance to the
+/// centre, `(dx^2 + dy^2) + dz^2` as the per-point tests sum it, is at most `limit`. Along a
+/// row that sum falls and then rises (every step of it is monotone in `x`), so they form one
+/// run: its ends are found from the chord and then checked exactly, one voxel at a time.
+#[inline]
+fn run(grid: &Grid, im: &Image, (dy2, dz2): (f64, f64), limit: f64) -> Option<(usize, usize)> {
+    // fl((dx2 + dy2) + dz2) >= fl(dy2 + dz2): rows beyond the limit are skipped whole.
+    let rest = dy2 + dz2;
+    if rest > limit {
+        return None;
+    }
+    let (o, h, c) = (grid.origin[0], grid.spacing[0], im.center[0]);
+    let d2 = |x: i64| {
+        let dx = o + (x as f64 + 0.5) * h - c;
+        (dx * dx + dy2) + dz2
+    };
+    let (lo, hi) = (im.lo[0] as i64, im.hi[0] as i64);
+    let w = (limit - rest).sqrt();
+    let mut a = (((c - w - o) / h - 0.5).floor() as i64).clamp(lo, hi);
+    while a > lo && d2(a - 1) <= limit {
+        a -= 1;
+    }
+    while a <= hi && d2(a) > limit {
+        a += 1;
+    }
+    if a > hi {
+        return None;
+    }
+    let mut b = (((c + w - o) / h - 0.5).ceil() as i64).clamp(a, hi);
+    while b < hi && d2(b + 1) <= limit {
+        b += 1;
+    }
+    while b > a && d2(b) > limit {
+        b -= 1;
+    }
+    Some((a as usize, b as usize))
+}
+
+/// An inclusive run of voxel indices along a row.
+type Run = (usize, usize);
+
+/// The cut part of a row: the voxels within `touch` but not within `full` (one run either
+/// side of the full run, or the whole touch run when nothing is full).
+#[inline]
+fn cut_runs(grid: &Grid, im: &Image, d: (f64, f64), b: &Bounds) -> Option<(Run, Option<Run>)> {
+    let outer = run(grid, im, d, b.touch?)?;
+    Some((outer, b.full.and_then(|f| run(grid, im, d, f))))
+}
+
+/// Labels every voxel; returns the labels and the mean sub-voxel coverage.
+///
+/// Each sphere (each periodic image of it) is stamped into the voxels of its bounding box:
+/// a voxel whose centre is deeper than half a voxel diagonal inside a sphere is solid, one
+/// further than that from every surface keeps its state, and the rest are cut. Only cut
+/// voxels are supersampled: each sphere that reaches one sets the sub-samples it contains,
+/// and the voxel is solid when at least half of its sub-samples are set. Slabs of z-planes
+/// run in parallel, each stamping the spheres that cross it.
 pub fn voxelize(
     grid: &Grid,
     spheres: &[WorldSphere],
@@ -213,39 +390,182 @@ pub fn voxelize(
         ..grid.clone()
     };
     let half_diag = 0.5 * grid.spacing.iter().map(|s| s * s).sum::<f64>().sqrt();
-    let raster = SphereRaster::new(&grid, spheres, half_diag)
-        .map_err(|e| StageError::failed(e.to_string()))?;
-    let s = supersampling;
-    let mut labels = vec![0u8; grid.voxel_count()];
-    let coverage: Vec<f64> = raster.scan(
-        &mut labels,
-        || 0.0f64,
-        |cov, cands, _, c, label| {
-            let centre = min_distance(cands, c, -half_diag, half_diag);
-            let f = if centre <= -half_diag {
-                1.0
-            } else if centre > half_diag {
-                0.0
-            } else {
-                let mut inside = 0usize;
-                for k in 0..s * s * s {
-                    let sub = [k % s, (k / s) % s, k / (s * s)];
-                    let q: [f64; 3] = std::array::from_fn(|a| {
-                        c[a] + ((sub[a] as f64 + 0.5) / s as f64 - 0.5) * grid.spacing[a]
-                    });
-                    if min_distance(cands, q, 0.0, 0.0) <= 0.0 {
-                        inside += 1;
+    let s = supersampling.max(1);
+    let samples = s * s * s;
+    let words = samples.div_ceil(64);
+    // A voxel whose sub-samples are all set already needs no more spheres.
+    let last_word = match samples % 64 {
+        0 => !0u64,
+        rest => (1u64 << rest) - 1,
+    };
+    let bounds: Vec<Bounds> = spheres
+        .iter()
+        .map(|sp| bounds(sp.radius, half_diag))
+        .collect();
+    let [nx, ny, nz] = grid.dims;
+    let slabs = nz.div_ceil(SLAB);
+    let mut per_slab: Vec<Vec<Image>> = (0..slabs).map(|_| Vec::new()).collect();
+    let mut scratch = Vec::new();
+    for (i, sp) in spheres.iter().enumerate() {
+        if bounds[i].touch.is_none() {
+            continue;
+        }
+        scratch.clear();
+        images(&grid, sp, i, half_diag, &mut scratch)?;
+        for im in scratch.drain(..) {
+            let (a, b) = (im.lo[2] / SLAB, im.hi[2] / SLAB);
+            for slab in &mut per_slab[a..b] {
+                slab.push(im);
+            }
+            per_slab[b].push(im);
+        }
+    }
+    // Sub-sample offsets from the voxel centre, per axis (x fastest in the sample index).
+    let offset: [Vec<f64>; 3] = std::array::from_fn(|a| {
+        (0..s)
+            .map(|k| ((k as f64 + 0.5) / s as f64 - 0.5) * grid.spacing[a])
+            .collect()
+    });
+    let plane = nx * ny;
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let mut labels = vec![EMPTY; grid.voxel_count()];
+    let inside: Vec<u64> = labels
+        .par_chunks_mut(plane * SLAB)
+        .zip(per_slab.par_iter())
+        .enumerate()
+        .map(|(slab, (state, ims))| -> Result<u64, StageError> {
+            let z0 = slab * SLAB;
+            let centre = |a: usize, i: usize| grid.origin[a] + (i as f64 + 0.5) * grid.spacing[a];
+            // Pass 1: classify centres.
+            for im in ims {
+                let b = &bounds[im.sphere];
+                for z in im.lo[2].max(z0)..=im.hi[2].min(z0 + SLAB - 1) {
+                    let dz = centre(2, z) - im.center[2];
+                    for y in im.lo[1]..=im.hi[1] {
+                        let dy = centre(1, y) - im.center[1];
+                        let base = (z - z0) * plane + y * nx;
+                        let Some((outer, inner)) = cut_runs(&grid, im, (dy * dy, dz * dz), b)
+                        else {
+                            continue;
+                        };
+                        let mark =
+                            |cells: &mut [u8]| cells.iter_mut().for_each(|c| *c = (*c).max(CUT));
+                        match inner {
+                            Some((c0, c1)) => {
+                                mark(&mut state[base + outer.0..base + c0]);
+                                state[base + c0..=base + c1].fill(FULL);
+                                mark(&mut state[base + c1 + 1..=base + outer.1]);
+                            }
+                            None => mark(&mut state[base + outer.0..=base + outer.1]),
+                        }
                     }
                 }
-                inside as f64 / (s * s * s) as f64
-            };
-            *cov += f;
-            *label = u8::from(f >= 0.5);
-        },
-        |done, total| ctx.progress(done, total),
-    )?;
+            }
+            // Pass 2, plane by plane (bounds the sub-sample masks to one plane): every sphere
+            // that reaches a cut voxel sets the sub-samples it contains.
+            let mut slot = vec![u32::MAX; plane];
+            let mut masks: Vec<u64> = Vec::new();
+            let mut count = 0u64;
+            let planes = state.len() / plane;
+            let (mut qx2, mut qy2, mut qz2) = (vec![0.0; s], vec![0.0; s], vec![0.0; s]);
+            for zl in 0..planes {
+                let z = z0 + zl;
+                let cells = &mut state[zl * plane..(zl + 1) * plane];
+                let mut cut = 0usize;
+                for (i, c) in cells.iter().enumerate() {
+                    slot[i] = if *c == CUT {
+                        cut += 1;
+                        (cut - 1) as u32
+                    } else {
+                        u32::MAX
+                    };
+                }
+                masks.clear();
+                masks.resize(cut * words, 0);
+                if cut > 0 {
+                    for im in ims {
+                        if z < im.lo[2] || z > im.hi[2] {
+                            continue;
+                        }
+                        let b = &bounds[im.sphere];
+                        let Some(inside) = b.inside else { continue };
+                        let cz = centre(2, z);
+                        let dz = cz - im.center[2];
+                        for (k, q) in qz2.iter_mut().enumerate() {
+                            let d = cz + offset[2][k] - im.center[2];
+                            *q = d * d;
+                        }
+                        for y in im.lo[1]..=im.hi[1] {
+                            let cy = centre(1, y);
+                            let dy = cy - im.center[1];
+                            let Some((outer, inner)) = cut_runs(&grid, im, (dy * dy, dz * dz), b)
+                            else {
+                                continue;
+                            };
+                            for (j, q) in qy2.iter_mut().enumerate() {
+                                let d = cy + offset[1][j] - im.center[1];
+                                *q = d * d;
+                            }
+                            // The full run is solid already: no sub-samples to set there.
+                            let (c0, c1) = inner.map_or((outer.1 + 1, outer.1), |r| r);
+                            for x in (outer.0..c0).chain(c1 + 1..=outer.1) {
+                                let sl = slot[y * nx + x];
+                                if sl == u32::MAX {
+                                    continue;
+                                }
+                                let m = &mut masks[sl as usize * words..(sl as usize + 1) * words];
+                                if m[..words - 1].iter().all(|&w| w == !0)
+                                    && m[words - 1] == last_word
+                                {
+                                    continue;
+                                }
+                                let cx = centre(0, x);
+                                for (i, q) in qx2.iter_mut().enumerate() {
+                                    let d = cx + offset[0][i] - im.center[0];
+                                    *q = d * d;
+                                }
+                                let mut bit = 0usize;
+                                for &z2 in &qz2 {
+                                    for &y2 in &qy2 {
+                                        for &x2 in &qx2 {
+                                            if (x2 + y2) + z2 <= inside {
+                                                m[bit / 64] |= 1 << (bit % 64);
+                                            }
+                                            bit += 1;
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+                for (i, c) in cells.iter_mut().enumerate() {
+                    *c = match *c {
+                        FULL => {
+                            count += samples as u64;
+                            1
+                        }
+                        CUT => {
+                            let sl = slot[i] as usize;
+                            let set: u64 = masks[sl * words..(sl + 1) * words]
+                                .iter()
+                                .map(|w| w.count_ones() as u64)
+                                .sum();
+                            count += set;
+                            u8::from(2 * set >= samples as u64)
+                        }
+                        _ => 0,
+                    };
+                }
+            }
+            let finished = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            ctx.progress(finished, slabs as u64)?;
+            Ok(count)
+        })
+        .collect::<Result<_, _>>()?;
+    let total: u64 = inside.iter().sum();
     Ok((
         labels,
-        coverage.iter().sum::<f64>() / grid.voxel_count() as f64,
+        total as f64 / (samples as f64 * grid.voxel_count() as f64),
     ))
 }

@@ -370,13 +370,24 @@ fn contract_with_restarts(
     mut replace: impl FnMut(&mut System, &mut ChaCha8Rng),
 ) -> Result<(RunStats, usize), (usize, Box<RunFailure>)> {
     let mut tries = 1;
+    // Shakes re-expand the cell and a restart begins at beta again, so the contraction's own
+    // fraction can fall; reports give the furthest fraction reached so a bar never goes back.
+    let mut furthest = 0.0f64;
+    let mut monotonic = |f: f64| {
+        furthest = furthest.max(f);
+        progress(furthest)
+    };
     loop {
-        match contract(sys, mode, beta, sch, rng, &mut progress) {
+        match contract(sys, mode, beta, sch, rng, &mut monotonic) {
             Ok(st) => return Ok((st, tries)),
             Err(f) if tries <= restarts && !matches!(f.reason, FailReason::Cancelled(_)) => {
                 ctx.warn(&format!(
-                    "{what}: try {tries} failed ({}); placing the grains afresh",
-                    f.reason
+                    "{what}: try {tries} failed ({}); placing the grains afresh and \
+                     contracting again from scale {beta} (try {} of {}; progress resumes \
+                     once the new try passes the furthest point reached)",
+                    f.reason,
+                    tries + 1,
+                    restarts + 1
                 ));
                 tries += 1;
                 replace(sys, rng);

@@ -301,6 +301,80 @@ fn simulate_in_pool(
     if n == 0 {
         return Err(StageError::input("packing", "has no bodies"));
     }
+    let (pos, radius, volume) = particles(packing)?;
+    let (pairs, bonded0) = conduction_pairs(contacts, n)?;
+    let beam = Beam {
+        // Only the absorbed part of the beam heats the bed.
+        power: p.absorptivity * p.power.si(),
+        radius: p.beam_radius.si(),
+        profile: p.beam_profile,
+    };
+    let t0 = initial_temperatures(p, packing)?;
+    let absorbers = select_absorbers(p, &pos, &radius, contacts)?;
+    let path = build_path(p, csv, packing);
+    let grid = plan_view(&absorbers, &pos, beam.reach());
+    let bed = Bed::new(pos, radius, &volume, pairs, bonded0, material(p), t0);
+
+    let t_end = path.duration() + p.cooldown.si();
+    let beam_dt = beam.radius / (5.0 * p.scan_speed.si());
+    let user_dt = p.dt.map(|d| d.si());
+    let explicit = p.integrator == Integrator::Explicit;
+    let mut integrator: Box<dyn Integrate> = if explicit {
+        Box::new(Explicit {
+            p,
+            user_dt,
+            beam_dt,
+            multirate: p.multirate && p.substep,
+            plan: None,
+        })
+    } else {
+        Box::new(Implicit {
+            dt: user_dt.unwrap_or(beam_dt),
+            tolerance: p.cg_tolerance,
+        })
+    };
+    let mut s = Stepper {
+        limit: bed.stability_limit(),
+        qlas: vec![0.0; n],
+        bed,
+        path: &path,
+        grid: &grid,
+        beam: &beam,
+        explicit,
+        t_end,
+        // Relative time tolerance for "reached" tests against accumulated float time.
+        eps: 1e-12 * t_end.max(1e-300),
+        max_steps: p.max_steps,
+        t: 0.0,
+        steps: 0,
+        laser_in: 0.0,
+        convected: 0.0,
+        last: Last::default(),
+        touched: Vec::new(),
+        samples: Vec::new(),
+        changed: Vec::new(),
+    };
+    let mut rec = Recorder::new(p, packing, &s);
+    let mut reported = 0u64;
+    while s.t < t_end - s.eps {
+        let h = rec.shorten(&s, integrator.dt(&s).min(t_end - s.t));
+        s.last.substeps = 0;
+        s.last.stiff = 0;
+        integrator.step(&mut s, h)?;
+        rec.record(&s, packing);
+        let permille = (s.t / t_end * 1000.0) as u64;
+        if permille > reported {
+            reported = permille;
+            ctx.progress(permille.min(1000), 1000)?;
+        }
+    }
+    results(p, packing, contacts, s, rec, absorbers, ctx)
+}
+
+/// Positions, volume-equivalent radii and volumes of the bodies.
+#[allow(clippy::type_complexity)]
+fn particles(packing: &Packing) -> Result<(Vec<[f64; 3]>, Vec<f64>, Vec<f64>), StageError> {
+    let n = packing.bodies.len();
     let mut pos = Vec::with_capacity(n);
     let mut radius = Vec::with_capacity(n);
     let mut volume = Vec::with_capacity(n);
@@ -320,7 +394,15 @@ fn simulate_in_pool(
             BodyShape::Clump { .. } => (3.0 * v / (4.0 * PI)).cbrt(),
         });
     }
-    // Conduction pairs: every contact and every pre-existing bond, each once.
+    Ok((pos, radius, volume))
+}
+
+/// Conduction pairs: every contact and every pre-existing bond, each once and sorted, with
+/// whether it starts bonded.
+fn conduction_pairs(
+    contacts: &ContactGraph,
+    n: usize,
+) -> Result<(Vec<[usize; 2]>, Vec<bool>), StageError> {
     let mut keyed: Vec<([usize; 2], bool)> = Vec::new();
     for c in &contacts.contacts {
         keyed.push(([c.i.min(c.j), c.i.max(c.j)], false));
@@ -351,8 +433,11 @@ fn simulate_in_pool(
             bonded0.push(b);
         }
     }
+    Ok((pairs, bonded0))
+}
 
-    let mat = Material {
+fn material(p: &LaserParams) -> Material {
+    Material {
         specific_heat: p.specific_heat.si(),
         density: p.density.si(),
         convection: p.convection_conductance.si(),
@@ -363,15 +448,15 @@ fn simulate_in_pool(
         melting: p
             .melting
             .then(|| (p.melting_temperature.si(), p.latent_heat.si())),
-    };
-    let beam = Beam {
-        // Only the absorbed part of the beam heats the bed.
-        power: p.absorptivity * p.power.si(),
-        radius: p.beam_radius.si(),
-        profile: p.beam_profile,
-    };
-    let t0: Vec<f64> = match (p.initial_temperature, packing.attributes.get("temperature")) {
-        (Some(t), _) => vec![t.si(); n],
+    }
+}
+
+/// The starting temperatures: `initial_temperature`, else the packing's `temperature`
+/// attribute (a previous run), else ambient.
+fn initial_temperatures(p: &LaserParams, packing: &Packing) -> Result<Vec<f64>, StageError> {
+    let n = packing.bodies.len();
+    match (p.initial_temperature, packing.attributes.get("temperature")) {
+        (Some(t), _) => Ok(vec![t.si(); n]),
         (None, Some(a)) => {
             if a.values.len() != n || a.values.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
                 return Err(StageError::input(
@@ -382,186 +467,241 @@ fn simulate_in_pool(
                     ),
                 ));
             }
-            a.values.clone()
+            Ok(a.values.clone())
         }
-        (None, None) => vec![p.ambient_temperature.si(); n],
-    };
-    let absorbers = select_absorbers(p, &pos, &radius, contacts)?;
-    let path = build_path(p, csv, packing);
-    let grid = plan_view(&absorbers, &pos, beam.reach());
-    let bed = Bed::new(pos, radius, &volume, pairs, bonded0, mat, t0);
+        (None, None) => Ok(vec![p.ambient_temperature.si(); n]),
+    }
+}
 
-    let t_end = path.duration() + p.cooldown.si();
-    let beam_dt = beam.radius / (5.0 * p.scan_speed.si());
-    let user_dt = p.dt.map(|d| d.si());
-    let explicit = p.integrator == Integrator::Explicit;
-    let macro_dt = |limit: f64| match (user_dt, explicit) {
-        (Some(d), _) => d,
-        (None, true) => (p.dt_safety * limit).min(beam_dt),
-        (None, false) => beam_dt,
-    };
+/// A time integrator of the bed: the step it takes next and the step itself (laser
+/// deposition and bookkeeping go through [`Stepper::advance`], bonding through
+/// [`Stepper::bond`]).
+trait Integrate {
+    /// The next step length, before the end time and the snapshot schedule shorten it.
+    fn dt(&mut self, s: &Stepper) -> f64;
+    /// Advances `s` by `h`.
+    fn step(&mut self, s: &mut Stepper, h: f64) -> Result<(), StageError>;
+}
 
-    let mut s = Stepper {
-        limit: bed.stability_limit(),
-        qlas: vec![0.0; n],
-        bed,
-        path: &path,
-        grid: &grid,
-        beam: &beam,
-        explicit,
-        t_end,
-        max_steps: p.max_steps,
-        t: 0.0,
-        steps: 0,
-        laser_in: 0.0,
-        convected: 0.0,
-        last: Last::default(),
-        touched: Vec::new(),
-        samples: Vec::new(),
-        changed: Vec::new(),
-    };
-    let mut hist = History::default();
-    let mut snapshots = Series { frames: Vec::new() };
-    let snap_every = p.snapshot_interval.si();
-    let hist_every = p.history_interval.si();
-    let mut next_snap = if snap_every > 0.0 {
-        snap_every
-    } else {
-        f64::INFINITY
-    };
-    let mut next_hist = hist_every;
-    snapshots.frames.push((0.0, frame(packing, &s.bed.t)));
-    hist.push(&s);
-    // Relative time tolerance for "reached" tests against accumulated float time.
-    let eps = 1e-12 * t_end.max(1e-300);
-    let mut reported = 0u64;
+/// Backward Euler, solved by conjugate gradients.
+struct Implicit {
+    dt: f64,
+    tolerance: f64,
+}
 
-    let use_mr = explicit && p.multirate && p.substep;
-    let mut plan: Option<Multirate> = None;
-    while s.t < t_end - eps {
-        if use_mr && plan.is_none() {
-            plan = Some(s.bed.plan(beam_dt, p.dt_safety, user_dt));
+impl Integrate for Implicit {
+    fn dt(&mut self, _: &Stepper) -> f64 {
+        self.dt
+    }
+
+    fn step(&mut self, s: &mut Stepper, h: f64) -> Result<(), StageError> {
+        let (t, tol) = (s.t, self.tolerance);
+        let st = s.advance(h, |bed, q| {
+            bed.implicit_step(h, q, tol)
+                .map_err(|e| StageError::failed(format!("at t = {t:.6e} s: {e}")))
+        })?;
+        s.last.substeps = 1;
+        s.bond(&mut None);
+        s.check(&st, Scheme::Implicit)
+    }
+}
+
+/// Forward Euler (the paper's scheme): either one global step in which the particles of a
+/// multirate plan are sub-cycled at their own stable step, or stable sub-steps of the whole
+/// bed.
+struct Explicit<'p> {
+    p: &'p LaserParams,
+    user_dt: Option<f64>,
+    beam_dt: f64,
+    /// Whether to plan multirate sub-cycling (`multirate` and `substep`).
+    multirate: bool,
+    /// The current plan; dropped when bonding makes too many particles stiff.
+    plan: Option<Multirate>,
+}
+
+impl Integrate for Explicit<'_> {
+    fn dt(&mut self, s: &Stepper) -> f64 {
+        if self.multirate && self.plan.is_none() {
+            self.plan = Some(s.bed.plan(self.beam_dt, self.p.dt_safety, self.user_dt));
         }
-        let base = match &plan {
-            Some(pl) => pl.dt,
-            None => macro_dt(s.limit),
-        };
-        let mut h = base.min(t_end - s.t);
-        if next_snap - s.t > eps {
-            h = h.min(next_snap - s.t);
+        match (&self.plan, self.user_dt) {
+            (Some(pl), _) => pl.dt,
+            (None, Some(d)) => d,
+            (None, None) => (self.p.dt_safety * s.limit).min(self.beam_dt),
         }
-        s.last.substeps = 0;
-        s.last.stiff = 0;
-        let mr = plan
+    }
+
+    fn step(&mut self, s: &mut Stepper, h: f64) -> Result<(), StageError> {
+        let n = s.bed.n;
+        let sub_cycles = self
+            .plan
             .as_ref()
-            .filter(|pl| !pl.stiff.is_empty() && 2 * pl.stiff.len() <= n);
-        if let Some(pl) = mr {
-            let stiff = pl.stiff.len();
-            // max_steps bounds the real work, counted in whole-bed steps: a sub-cycle of the
-            // `stiff` particles costs 2 stiff / n of one (sequential, as the plan counts
-            // it), and a global step whose sub-cycles would pass the limit is not started.
-            let planned = (h / (p.dt_safety * pl.stiff_limit)).ceil().max(1.0);
-            let work =
-                |cycles: f64| ((cycles - 1.0).max(0.0) * 2.0 * stiff as f64 / n as f64).ceil();
-            if s.steps as f64 + 1.0 + work(planned) > s.max_steps as f64 {
-                return Err(StageError::failed(format!(
-                    "reached max_steps = {} at t = {:.6e} s of {:.6e} s: the next step of \
-                     {h:.3e} s would sub-cycle {stiff} stiff particles {planned} times (their \
-                     stability limit is {:.3e} s); raise max_steps, lower bonded_conductance \
-                     or contact_conductance, or use integrator: implicit",
-                    s.max_steps, s.t, t_end, pl.stiff_limit
-                )));
-            }
-            let mut ns = 0;
-            let st = s.advance(h, |bed, q| {
-                let (st, k) = bed.explicit_step_multirate(h, q, pl, p.dt_safety);
-                ns = k;
-                Ok(st)
-            })?;
-            s.last.substeps = ns;
-            s.last.stiff = stiff;
-            // `advance` counted the global step; the further sub-cycles are work too.
-            s.steps = s.steps.saturating_add(work(ns as f64) as u64);
-            s.bond(&mut plan);
-            s.check(&st, Scheme::Multirate)?;
-        } else if explicit {
-            let mut remaining = h;
-            // A step up to the limit is taken as given (automatic steps are dt_safety x
-            // limit). Above it: refuse a user dt, or split into equal stable sub-steps,
-            // re-planned when bonding changes the limit.
-            let single = h <= s.limit * (1.0 + 1e-12);
-            if !single && !p.substep && user_dt.is_some() {
-                return Err(StageError::param(
-                    "dt",
-                    format!(
-                        "dt = {:.6e} s exceeds the explicit stability limit {:.6e} s (min over \
-                         particles of m_i C_p / (sum_j k_ij + k_b)) at t = {:.6e} s; use dt \
-                         <= {:.6e} s, substep: true or integrator: implicit",
-                        user_dt.unwrap_or(h),
-                        s.limit,
-                        s.t,
-                        s.limit
-                    ),
-                ));
-            }
-            let mut sub_len = 0.0;
-            while remaining > eps {
-                let sub = if single {
+            .is_some_and(|pl| !pl.stiff.is_empty() && 2 * pl.stiff.len() <= n);
+        if sub_cycles {
+            self.multirate_step(s, h)
+        } else {
+            self.sub_steps(s, h)
+        }
+    }
+}
+
+impl Explicit<'_> {
+    fn multirate_step(&mut self, s: &mut Stepper, h: f64) -> Result<(), StageError> {
+        let (n, safety) = (s.bed.n, self.p.dt_safety);
+        let pl = self.plan.as_ref().expect("called with a plan");
+        let stiff = pl.stiff.len();
+        // max_steps bounds the real work, counted in whole-bed steps: a sub-cycle of the
+        // `stiff` particles costs 2 stiff / n of one (sequential, as the plan counts it), and
+        // a global step whose sub-cycles would pass the limit is not started.
+        let planned = (h / (safety * pl.stiff_limit)).ceil().max(1.0);
+        let work = |cycles: f64| ((cycles - 1.0).max(0.0) * 2.0 * stiff as f64 / n as f64).ceil();
+        if s.steps as f64 + 1.0 + work(planned) > s.max_steps as f64 {
+            return Err(StageError::failed(format!(
+                "reached max_steps = {} at t = {:.6e} s of {:.6e} s: the next step of {h:.3e} \
+                 s would sub-cycle {stiff} stiff particles {planned} times (their stability \
+                 limit is {:.3e} s); raise max_steps, lower bonded_conductance or \
+                 contact_conductance, or use integrator: implicit",
+                s.max_steps, s.t, s.t_end, pl.stiff_limit
+            )));
+        }
+        let mut cycles = 0;
+        let st = s.advance(h, |bed, q| {
+            let (st, k) = bed.explicit_step_multirate(h, q, pl, safety);
+            cycles = k;
+            Ok(st)
+        })?;
+        s.last.substeps = cycles;
+        s.last.stiff = stiff;
+        // `advance` counted the global step; the further sub-cycles are work too.
+        s.steps = s.steps.saturating_add(work(cycles as f64) as u64);
+        s.bond(&mut self.plan);
+        s.check(&st, Scheme::Multirate)
+    }
+
+    /// A step up to the stability limit is taken as given (automatic steps are dt_safety x
+    /// limit). Above it: refuse a user dt, or split into equal stable sub-steps, re-planned
+    /// when bonding changes the limit.
+    fn sub_steps(&mut self, s: &mut Stepper, h: f64) -> Result<(), StageError> {
+        let p = self.p;
+        let single = h <= s.limit * (1.0 + 1e-12);
+        if !single && !p.substep && self.user_dt.is_some() {
+            return Err(StageError::param(
+                "dt",
+                format!(
+                    "dt = {:.6e} s exceeds the explicit stability limit {:.6e} s (min over \
+                     particles of m_i C_p / (sum_j k_ij + k_b)) at t = {:.6e} s; use dt <= \
+                     {:.6e} s, substep: true or integrator: implicit",
+                    self.user_dt.unwrap_or(h),
+                    s.limit,
+                    s.t,
+                    s.limit
+                ),
+            ));
+        }
+        let mut remaining = h;
+        let mut sub_len = 0.0;
+        while remaining > s.eps {
+            let sub = if single {
+                remaining
+            } else {
+                if sub_len == 0.0 {
+                    sub_len = remaining / (remaining / (p.dt_safety * s.limit)).ceil();
+                }
+                if remaining < 1.5 * sub_len {
                     remaining
                 } else {
-                    if sub_len == 0.0 {
-                        sub_len = remaining / (remaining / (p.dt_safety * s.limit)).ceil();
-                    }
-                    if remaining < 1.5 * sub_len {
-                        remaining
-                    } else {
-                        sub_len
-                    }
-                };
-                let st = s.advance(sub, |bed, q| Ok(bed.explicit_step(sub, q)))?;
-                remaining -= sub;
-                s.last.substeps += 1;
-                if s.bond(&mut plan) {
-                    sub_len = 0.0;
+                    sub_len
                 }
-                s.check(&st, Scheme::Explicit)?;
+            };
+            let st = s.advance(sub, |bed, q| Ok(bed.explicit_step(sub, q)))?;
+            remaining -= sub;
+            s.last.substeps += 1;
+            if s.bond(&mut self.plan) {
+                sub_len = 0.0;
             }
-        } else {
-            let t = s.t;
-            let st = s.advance(h, |bed, q| {
-                bed.implicit_step(h, q, p.cg_tolerance)
-                    .map_err(|e| StageError::failed(format!("at t = {t:.6e} s: {e}")))
-            })?;
-            s.last.substeps = 1;
-            s.bond(&mut plan);
-            s.check(&st, Scheme::Implicit)?;
+            s.check(&st, Scheme::Explicit)?;
         }
-        let t = s.t;
-        let done = t >= t_end - eps;
-        if done || t >= next_hist - eps || hist_every == 0.0 {
-            hist.push(&s);
-            while next_hist <= t + eps {
-                next_hist += hist_every.max(f64::MIN_POSITIVE);
-                if hist_every == 0.0 {
+        Ok(())
+    }
+}
+
+/// The history rows and temperature snapshots of a run, on their schedules.
+struct Recorder {
+    hist: History,
+    snapshots: Series,
+    snap_every: f64,
+    hist_every: f64,
+    next_snap: f64,
+    next_hist: f64,
+}
+
+impl Recorder {
+    /// Starts with the initial state.
+    fn new(p: &LaserParams, packing: &Packing, s: &Stepper) -> Self {
+        let snap_every = p.snapshot_interval.si();
+        let hist_every = p.history_interval.si();
+        let mut r = Recorder {
+            hist: History::default(),
+            snapshots: Series { frames: Vec::new() },
+            snap_every,
+            hist_every,
+            next_snap: if snap_every > 0.0 {
+                snap_every
+            } else {
+                f64::INFINITY
+            },
+            next_hist: hist_every,
+        };
+        r.snapshots.frames.push((0.0, frame(packing, &s.bed.t)));
+        r.hist.push(s);
+        r
+    }
+
+    /// `h` shortened to end on the next snapshot time.
+    fn shorten(&self, s: &Stepper, h: f64) -> f64 {
+        if self.next_snap - s.t > s.eps {
+            h.min(self.next_snap - s.t)
+        } else {
+            h
+        }
+    }
+
+    /// Records the state after a step: a history row when one is due or the run ends, a
+    /// snapshot when one is due, and the final state.
+    fn record(&mut self, s: &Stepper, packing: &Packing) {
+        let (t, eps) = (s.t, s.eps);
+        let done = t >= s.t_end - eps;
+        if done || t >= self.next_hist - eps || self.hist_every == 0.0 {
+            self.hist.push(s);
+            while self.next_hist <= t + eps {
+                self.next_hist += self.hist_every.max(f64::MIN_POSITIVE);
+                if self.hist_every == 0.0 {
                     break;
                 }
             }
         }
-        if t >= next_snap - eps {
-            snapshots.frames.push((t, frame(packing, &s.bed.t)));
-            while next_snap <= t + eps {
-                next_snap += snap_every;
+        if t >= self.next_snap - eps {
+            self.snapshots.frames.push((t, frame(packing, &s.bed.t)));
+            while self.next_snap <= t + eps {
+                self.next_snap += self.snap_every;
             }
-        } else if done && snapshots.frames.last().map(|f| f.0) != Some(t) {
-            snapshots.frames.push((t, frame(packing, &s.bed.t)));
-        }
-        let permille = (t / t_end * 1000.0) as u64;
-        if permille > reported {
-            reported = permille;
-            ctx.progress(permille.min(1000), 1000)?;
+        } else if done && self.snapshots.frames.last().map(|f| f.0) != Some(t) {
+            self.snapshots.frames.push((t, frame(packing, &s.bed.t)));
         }
     }
+}
 
+/// The run's artifacts: per-particle attributes, the bond graph, the message and the
+/// validity check.
+fn results(
+    p: &LaserParams,
+    packing: &Packing,
+    contacts: &ContactGraph,
+    s: Stepper,
+    rec: Recorder,
+    absorbers: Vec<usize>,
+    ctx: &RunContext,
+) -> Result<RunResult, StageError> {
     let Stepper {
         bed,
         t,
@@ -570,6 +710,7 @@ fn simulate_in_pool(
         convected,
         ..
     } = s;
+    let n = bed.n;
     let mut out = packing.clone();
     let attr = |unit: &str, values: Vec<f64>| BodyAttribute {
         unit: unit.into(),
@@ -625,8 +766,8 @@ fn simulate_in_pool(
     Ok(RunResult {
         bonds: graph,
         packing: out,
-        snapshots,
-        history: hist.table(),
+        snapshots: rec.snapshots,
+        history: rec.hist.table(),
         steps,
         absorbers,
     })
@@ -675,6 +816,8 @@ struct Stepper<'a> {
     /// Whether the integrator is explicit (the stability limit then follows bonding).
     explicit: bool,
     t_end: f64,
+    /// Tolerance of "reached" tests against the accumulated time [s].
+    eps: f64,
     max_steps: u64,
     t: f64,
     steps: u64,

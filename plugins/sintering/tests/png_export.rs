@@ -27,8 +27,11 @@ fn top_view_png_shows_bonds_and_particles() {
     ex.write(&Artifact::ContactGraph(g), &path, &Provenance::default())
         .unwrap();
     let img = image::open(&path).unwrap().to_rgb8();
-    // Square extent: 1600 px with 20 px margins -> 1560 px for 100 um.
-    assert_eq!(img.dimensions(), (1600, 1600));
+    // Square extent: 1600 px with 20 px margins -> 1560 px for 100 um, and the legend band.
+    assert_eq!(
+        img.dimensions(),
+        (1600, 1600 + grainpipe_sintering::png::LEGEND)
+    );
     let px = |x: u32, y: u32| img.get_pixel(x, y).0;
     // Bond midpoint (50 um, 0) -> pixel (800, 1580): black line.
     assert_eq!(px(800, 1580), [0, 0, 0]);
@@ -82,4 +85,83 @@ fn png_carries_the_provenance_as_text_chunks() {
         text.contains(&("pipeline_yaml".into(), "name: µ-bed\nseed: 42\n".into())),
         "{text:?}"
     );
+}
+
+fn square() -> ContactGraph {
+    let c = |i, j| Contact { i, j, gap: 0.0 };
+    ContactGraph {
+        contacts: vec![c(0, 1), c(0, 2), c(1, 3), c(2, 3)],
+        bonds: vec![[0, 1]],
+        positions: vec![
+            [0.0, 0.0, 0.0],
+            [100e-6, 0.0, 0.0],
+            [0.0, 100e-6, 5e-6],
+            [100e-6, 100e-6, 0.0],
+        ],
+        ..Default::default()
+    }
+}
+
+#[test]
+fn scale_bar_is_its_length_over_the_pixel_size() {
+    use grainpipe_sintering::png::{ScaleBar, View};
+    let g = square();
+    let view = View::new(&g);
+    // 100 um over 1560 px; a fifth of the width is 20 um, already a round length.
+    assert!((view.pixel_size() - 100e-6 / 1560.0).abs() < 1e-18);
+    let bar = ScaleBar::new(&view);
+    assert!((bar.length - 20e-6).abs() < 1e-18, "{bar:?}");
+    assert_eq!(bar.pixels, 312);
+    assert_eq!(bar.pixels, (bar.length / view.pixel_size()).round() as u32);
+    assert_eq!(bar.label(), "20 µm");
+    // The drawn bar: a run of exactly `pixels` black pixels along its middle row.
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bar.png");
+    BondGraphPng
+        .write(&Artifact::ContactGraph(g), &path, &Provenance::default())
+        .unwrap();
+    let img = image::open(&path).unwrap().to_rgb8();
+    let y = bar.y as u32;
+    let run = (bar.x as u32..img.width())
+        .take_while(|&x| img.get_pixel(x, y).0 == [0, 0, 0])
+        .count();
+    assert_eq!(run as u32, bar.pixels);
+    assert_eq!(img.get_pixel(bar.x as u32 - 1, y).0, [255, 255, 255]);
+}
+
+#[test]
+fn powderbed_bond_graph_png_is_small_and_indexed() {
+    // The bond graph of pipelines/powderbed.yaml (about 3,000 particles and their bonds) was
+    // 4.5 MB as unfiltered RGB; palette-indexed at the strongest deflate level it must stay
+    // below 400 kB.
+    let root = grainpipe_core::testing::workspace_root(env!("CARGO_MANIFEST_DIR"));
+    let mut doc =
+        grainpipe_core::pipeline::PipelineDoc::load(&root.join("pipelines/powderbed.yaml"))
+            .unwrap();
+    doc.exports.clear();
+    let mut reg = grainpipe_core::Registry::new();
+    grainpipe_bricks::register(&mut reg);
+    grainpipe_sintering::register(&mut reg);
+    let r = grainpipe_core::engine::run_quietly(&doc, &reg).unwrap();
+    let bonds = r
+        .artifact("sinter.bonds")
+        .as_contact_graph()
+        .unwrap()
+        .clone();
+    assert!(!bonds.bonds.is_empty());
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bonds_top.png");
+    BondGraphPng
+        .write(
+            &Artifact::ContactGraph(bonds),
+            &path,
+            &Provenance::default(),
+        )
+        .unwrap();
+    let size = std::fs::metadata(&path).unwrap().len();
+    assert!(size < 400_000, "{size} bytes");
+    let reader = png::Decoder::new(std::fs::File::open(&path).unwrap())
+        .read_info()
+        .unwrap();
+    assert_eq!(reader.info().color_type, png::ColorType::Indexed);
 }

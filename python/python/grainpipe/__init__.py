@@ -122,9 +122,16 @@ def _progress_callback(progress: Any) -> Optional[Callable[[dict], None]]:
             )
         elif kind == "progress" and step in bars:
             bar = bars[step]
-            if event["total"] and bar.total != event["total"]:
-                bar.total = event["total"]
-            bar.n = event["done"]
+            done, total = event["done"], event["total"]
+            # A bar never moves back (as `pipe`'s): a report behind the shown fraction, or one
+            # with a new total, keeps at least the fraction already shown.
+            if total and bar.total and total != bar.total:
+                done = max(done, -(-bar.n * total // bar.total))
+            elif not total or total == bar.total:
+                done = max(done, bar.n)
+            if total and bar.total != total:
+                bar.total = total
+            bar.n = min(done, total) if total else done
             bar.refresh()
         elif kind == "finish" and step in bars:
             bar = bars.pop(step)

@@ -24,6 +24,10 @@ def _nc_name(s: str) -> str:
     return out
 
 
+#: Provenance entries our NetCDF and HDF5 writers store as integers (formats/src/h5util.rs).
+_INTEGER_PROVENANCE = ("seed", "stage_seed")
+
+
 class Artifact:
     """One output of a step. `kind` is the artifact kind (PhaseImage, Field, Packing, ...);
     `provenance` the entries grainpipe writes into exported files."""
@@ -108,7 +112,11 @@ class _Volume(Artifact):
                 "periodic": [int(p) for p in self.periodic],
             }
         )
-        attrs.update({_nc_name(k): v for k, v in self.provenance.items()})
+        for k, v in self.provenance.items():
+            # As the NetCDF writer: seeds as uint64 numbers (exact for 64-bit seeds).
+            if k in _INTEGER_PROVENANCE and v.isdigit():
+                v = np.uint64(int(v))
+            attrs[_nc_name(k)] = v
         return xr.DataArray(self.array, dims=dims, coords=coords, name=_nc_name(self._name()), attrs=attrs)
 
     def to_pyvista(self):

@@ -1,10 +1,10 @@
 //! `grains.from_harmonics`: star-shaped grains from spherical-harmonic coefficient files.
 
 use super::{
-    check_nonempty, check_voxel, de_resolved, grain_output_ports, grain_outputs, preflight_grains,
-    quantile, resolve_path, resolved, GrainMask,
+    check_nonempty_items, check_voxel, de_resolved, grain_output_ports, item_outputs,
+    preflight_grains, quantile, resolve_path, resolved, GrainItem, GrainMask,
 };
-use crate::shape::{Harmonics, StarShape};
+use crate::shape::{Harmonics, RadiusTable, StarShape};
 use grainpipe_core::distributions::SizeDistribution;
 use grainpipe_core::spatial::random_quaternion;
 use grainpipe_core::units::{Length, Q};
@@ -15,7 +15,7 @@ use std::path::PathBuf;
 
 #[params]
 pub struct HarmonicsParams {
-    /// folder of `-anm-` .dat files (relative to the working directory; the shipped data/ folder is found from anywhere)
+    /// folder of `-anm-` .dat files (relative to the working directory; the shipped data/ folder is found from anywhere); rows with m < 0 must satisfy a_(n,-m) = (-1)^m conj(a_nm) within 1e-6 of the largest coefficient
     #[param(file, ty = "path", default = resolved("data/sand-grains/MA107-6-fine"))]
     #[serde(deserialize_with = "de_resolved")]
     pub directory: String,
@@ -81,67 +81,97 @@ impl HarmonicsParams {
     }
 }
 
-impl TypedStage for FromHarmonics {
-    type Params = HarmonicsParams;
-    /// The coefficient files, listed once in preflight.
-    type Plan = Vec<PathBuf>;
-    fn info(&self) -> StageInfo {
-        StageInfo::new(
-            "grains.from_harmonics",
-            "1.1.0",
-            "Star-shaped grains from spherical-harmonic coefficient files (VCCTL `-anm-` \
-             format, the real sand grains of data/sand-grains/), rescaled to a target \
-             size and voxelized: the default grain source of the sand-core pipelines.",
-        )
-        .outputs(grain_output_ports())
+/// What preflight works out once and run reuses: the parsed, tabulated shapes, their natural
+/// sizes and every grain's file and target diameter.
+pub struct HarmonicsPlan {
+    names: Vec<String>,
+    tables: Vec<RadiusTable>,
+    /// (volume, area) of each table's surface at unit scale (file units, mm).
+    va: Vec<(f64, f64)>,
+    /// Natural volume-equivalent diameters [m].
+    natural: Vec<f64>,
+    /// File of grain k.
+    pick: Vec<usize>,
+    /// Volume-equivalent diameter of grain k [m].
+    targets: Vec<f64>,
+    /// Bytes the run holds at its peak (see [`peak_bytes`]).
+    pub bytes: u64,
+}
+
+/// Bytes one grain's output holds beyond its labels: the PhaseImage and Collection entry
+/// headers, the phase table, the item name and one stats row (measured with the example
+/// `harmonics_memory`: a few hundred bytes, rounded up).
+const PER_GRAIN_OVERHEAD: f64 = 1024.0;
+
+/// Peak bytes of a run: the output labels (one byte per voxel of every grain's box) plus,
+/// per worker thread, one grain in flight (its bool mask and its u8 labels), plus the
+/// tables. Nothing else scales with the count: grains are turned into their output item as
+/// soon as they are voxelized.
+fn peak_bytes(boxes: &[f64], threads: usize) -> u64 {
+    let total: f64 = boxes.iter().sum();
+    let largest = boxes.iter().copied().fold(0.0, f64::max);
+    (total + boxes.len() as f64 * PER_GRAIN_OVERHEAD + 2.0 * largest * threads as f64) as u64
+}
+
+/// Voxels of the box [`StarShape::voxelize`] allocates for extents `e` (before the empty
+/// layer) at voxel `h`: one layer below, the rounding of both ends, one above.
+fn box_voxels(e: [f64; 3], h: f64) -> f64 {
+    e.iter().map(|x| x / h + 3.0).product()
+}
+
+/// Mean bounding-box extents of a unit-scale shape over rotations: the identity when grains
+/// keep the files' orientation, else the mean over a fixed set of 24 rotations (the cube's
+/// rotation group applied after a generic tilt), which estimates the expected box of a
+/// uniformly random rotation.
+fn mean_extents(table: &RadiusTable, rotate: bool) -> [f64; 3] {
+    let rots: Vec<Matrix3<f64>> = if rotate {
+        let tilt = *UnitQuaternion::from_euler_angles(0.37, 0.91, 1.73)
+            .to_rotation_matrix()
+            .matrix();
+        (0..24)
+            .map(|k| {
+                let (a, b, c) = ((k % 4) as f64, ((k / 4) % 3) as f64, (k / 12) as f64);
+                let r = UnitQuaternion::from_euler_angles(
+                    c * std::f64::consts::PI,
+                    b * std::f64::consts::FRAC_PI_2,
+                    a * std::f64::consts::FRAC_PI_2,
+                );
+                *r.to_rotation_matrix().matrix() * tilt
+            })
+            .collect()
+    } else {
+        vec![Matrix3::identity()]
+    };
+    let mut e = [0.0; 3];
+    for r in &rots {
+        let (lo, hi) = StarShape {
+            table: table.clone(),
+            transform: *r,
+        }
+        .bbox();
+        for a in 0..3 {
+            e[a] += (hi[a] - lo[a]) / rots.len() as f64;
+        }
     }
-    fn preflight(
-        &self,
-        p: &Self::Params,
-        _: &InputMetas,
-    ) -> Result<Preflight<Vec<PathBuf>>, StageError> {
-        check_voxel("voxel_size", p.voxel_size.si())?;
-        check_voxel("d50", p.d50.si())?;
-        if let Some(d) = &p.size {
-            d.validate()
-                .map_err(|(k, m)| StageError::param(&format!("size.{k}"), m))?;
-        }
-        if p.max_degree == 0 || p.max_degree > 200 {
-            return Err(StageError::param("max_degree", "must be in 1..=200"));
-        }
-        let files = p.file_list()?;
-        let n = if p.count == 0 { files.len() } else { p.count };
-        let d = p
-            .size
-            .as_ref()
-            .map(|s| s.practical_max())
-            .unwrap_or(p.d50.si() * 2.0);
-        let vox = (2.0 * d / p.voxel_size.si()).powi(3);
-        if vox > 5e7 {
-            return Err(StageError::param(
-                "voxel_size",
-                format!("a grain would need ~{vox:.0} voxels: use a larger voxel_size"),
-            ));
-        }
-        let diameter = p.size.as_ref().map_or(p.d50.si(), |s| s.mean());
-        Ok(preflight_grains(&self.info(), Some(n), vox, Some(diameter)).with_plan(files))
-    }
-    fn run(
-        &self,
-        p: &Self::Params,
-        files: &Vec<PathBuf>,
-        _: &Inputs,
-        ctx: &RunContext,
-    ) -> Result<Outputs, StageError> {
-        let n = if p.count == 0 { files.len() } else { p.count };
-        let nt = (4 * p.max_degree).max(60);
+    e
+}
+
+impl HarmonicsParams {
+    fn plan(&self, files: &[PathBuf]) -> Result<HarmonicsPlan, StageError> {
+        let n = if self.count == 0 {
+            files.len()
+        } else {
+            self.count
+        };
+        let nt = (4 * self.max_degree).max(60);
         let shapes: Vec<(String, Harmonics)> = files
             .iter()
             .map(|f| {
-                let mut h = Harmonics::read(f).map_err(StageError::failed)?;
-                if h.nmax > p.max_degree {
-                    h.coef.truncate((p.max_degree + 1) * (p.max_degree + 2) / 2);
-                    h.nmax = p.max_degree;
+                let mut h = Harmonics::read(f).map_err(|e| StageError::param("directory", e))?;
+                if h.nmax > self.max_degree {
+                    h.coef
+                        .truncate((self.max_degree + 1) * (self.max_degree + 2) / 2);
+                    h.nmax = self.max_degree;
                 }
                 let name = f
                     .file_name()
@@ -150,16 +180,19 @@ impl TypedStage for FromHarmonics {
                 Ok((name, h))
             })
             .collect::<Result<_, StageError>>()?;
-        let tables: Vec<_> = shapes
+        let tables: Vec<RadiusTable> = shapes
             .par_iter()
             .map(|(_, h)| h.tabulate(nt, 2 * nt))
             .collect();
         if let Some((k, t)) = tables.iter().enumerate().find(|(_, t)| t.min() <= 0.0) {
-            return Err(StageError::failed(format!(
-                "{}: the radius function reaches {:.3e} <= 0: not a star-shaped grain",
-                shapes[k].0,
-                t.min()
-            )));
+            return Err(StageError::param(
+                "directory",
+                format!(
+                    "{}: the radius function reaches {:.3e} <= 0: not a star-shaped grain",
+                    shapes[k].0,
+                    t.min()
+                ),
+            ));
         }
         // Natural sizes (the files are in mm: README of data/sand-grains).
         let va: Vec<(f64, f64)> = tables
@@ -177,11 +210,11 @@ impl TypedStage for FromHarmonics {
             .map(|(v, _)| (6.0 * v / std::f64::consts::PI).cbrt() * 1e-3)
             .collect();
         let pick: Vec<usize> = (0..n).map(|k| k % files.len()).collect();
-        let targets: Vec<f64> = match &p.size {
+        let targets: Vec<f64> = match &self.size {
             None => {
                 let med = quantile(&pick.iter().map(|&i| natural[i]).collect::<Vec<_>>(), 0.5);
                 pick.iter()
-                    .map(|&i| natural[i] * p.d50.si() / med)
+                    .map(|&i| natural[i] * self.d50.si() / med)
                     .collect()
             }
             Some(dist) => {
@@ -199,12 +232,95 @@ impl TypedStage for FromHarmonics {
                 t
             }
         };
+        let ext: Vec<[f64; 3]> = tables
+            .par_iter()
+            .map(|t| mean_extents(t, self.random_rotation))
+            .collect();
+        let h = self.voxel_size.si();
+        let boxes: Vec<f64> = (0..n)
+            .map(|k| {
+                let s = targets[k] / natural[pick[k]] * 1e-3;
+                box_voxels(ext[pick[k]].map(|e| e * s), h)
+            })
+            .collect();
+        if let Some(k) = (0..n).max_by(|&a, &b| boxes[a].total_cmp(&boxes[b])) {
+            if boxes[k] > 5e7 {
+                return Err(StageError::param(
+                    "voxel_size",
+                    format!(
+                        "grain {k} ({}, d_eq {:.1} um) would need ~{:.0} voxels (limit 5e7): use \
+                         a larger voxel_size",
+                        shapes[pick[k]].0,
+                        targets[k] * 1e6,
+                        boxes[k]
+                    ),
+                ));
+            }
+        }
+        Ok(HarmonicsPlan {
+            names: shapes.into_iter().map(|(s, _)| s).collect(),
+            tables,
+            va,
+            natural,
+            pick,
+            targets,
+            bytes: peak_bytes(&boxes, rayon::current_num_threads()),
+        })
+    }
+}
+
+impl TypedStage for FromHarmonics {
+    type Params = HarmonicsParams;
+    /// The coefficient files read, checked and tabulated once in preflight.
+    type Plan = HarmonicsPlan;
+    fn info(&self) -> StageInfo {
+        StageInfo::new(
+            "grains.from_harmonics",
+            "1.2.0",
+            "Star-shaped grains from spherical-harmonic coefficient files (VCCTL `-anm-` \
+             format, the real sand grains of data/sand-grains/), rescaled to a target \
+             size and voxelized: the default grain source of the sand-core pipelines.",
+        )
+        .outputs(grain_output_ports())
+    }
+    fn preflight(
+        &self,
+        p: &Self::Params,
+        _: &InputMetas,
+    ) -> Result<Preflight<HarmonicsPlan>, StageError> {
+        check_voxel("voxel_size", p.voxel_size.si())?;
+        check_voxel("d50", p.d50.si())?;
+        if let Some(d) = &p.size {
+            d.validate()
+                .map_err(|(k, m)| StageError::param(&format!("size.{k}"), m))?;
+        }
+        if p.max_degree == 0 || p.max_degree > 200 {
+            return Err(StageError::param("max_degree", "must be in 1..=200"));
+        }
+        let files = p.file_list()?;
+        let plan = p.plan(&files)?;
+        let n = plan.targets.len();
+        let diameter = p.size.as_ref().map_or(p.d50.si(), |s| s.mean());
+        let mut pf = preflight_grains(&self.info(), Some(n), 0.0, Some(diameter));
+        pf.memory_bytes = plan.bytes;
+        Ok(pf.with_plan(plan))
+    }
+    fn run(
+        &self,
+        p: &Self::Params,
+        plan: &HarmonicsPlan,
+        _: &Inputs,
+        ctx: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let n = plan.targets.len();
         let done = std::sync::atomic::AtomicU64::new(0);
-        let grains: Vec<GrainMask> = (0..n)
+        // Each grain becomes its output item (labels and stats) as soon as it is voxelized,
+        // so the masks of all grains never coexist with their images.
+        let items: Vec<GrainItem> = (0..n)
             .into_par_iter()
             .map(|k| {
-                let i = pick[k];
-                let scale = targets[k] / natural[i] * 1e-3; // mm -> m and rescale
+                let i = plan.pick[k];
+                let scale = plan.targets[k] / plan.natural[i] * 1e-3; // mm -> m and rescale
                 let rot = if p.random_rotation {
                     let [w, x, y, z] = random_quaternion(&mut ctx.substream(k as u64));
                     *UnitQuaternion::from_quaternion(Quaternion::new(w, x, y, z))
@@ -214,13 +330,13 @@ impl TypedStage for FromHarmonics {
                     Matrix3::identity()
                 };
                 let shape = StarShape {
-                    table: tables[i].clone(),
+                    table: plan.tables[i].clone(),
                     transform: rot * scale,
                 };
                 let (dims, origin, mask) = shape
                     .voxelize(p.voxel_size.si())
                     .map_err(|e| StageError::failed(e.to_string()))?;
-                let area = va[i].1 * (scale * scale); // rotations keep the area
+                let area = plan.va[i].1 * (scale * scale); // rotations keep the area
                 let d = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                 ctx.progress(d, n as u64)?;
                 Ok(GrainMask {
@@ -228,12 +344,13 @@ impl TypedStage for FromHarmonics {
                     voxel: p.voxel_size.si(),
                     origin,
                     mask,
-                    source: shapes[i].0.clone(),
+                    source: plan.names[i].clone(),
                     area: Some(area),
-                })
+                }
+                .into_item())
             })
             .collect::<Result<_, StageError>>()?;
-        check_nonempty(&grains)?;
-        Ok(grain_outputs(&grains))
+        check_nonempty_items(&items)?;
+        Ok(item_outputs(items))
     }
 }

@@ -141,13 +141,28 @@ pub fn keep_largest_component(mask: &mut [bool], dims: [usize; 3]) {
     }
 }
 
+/// Refuses non-cubic voxels, naming the input that brought them.
+fn check_cubic(port: &str, s: [f64; 3]) -> Result<(), StageError> {
+    if (s[1] / s[0] - 1.0).abs() > 1e-6 || (s[2] / s[0] - 1.0).abs() > 1e-6 {
+        return Err(StageError::input(
+            port,
+            format!(
+                "voxels must be cubic, spacing is {s:?} m: resample the scan to cubic voxels \
+                 before importing it (or set `spacing` on the import.* stage when the file's \
+                 spacing is wrong)"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 impl TypedStage for FromLabels {
     type Params = LabelsParams;
     type Plan = ();
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "grains.from_labels",
-            "1.1.0",
+            "1.2.0",
             "One mask per grain from a segmented scan whose labels are grain ids (read it \
              with import.raw / import.hdf5 / import.netcdf / import.vti). A PhaseImage \
              holds at most 255 grain ids (u8 labels); connect a Field of integer values \
@@ -191,14 +206,13 @@ impl TypedStage for FromLabels {
             .as_ref()
             .map(|g| g.voxel_count() as u64 * 10)
             .unwrap_or(0);
+        let port = if inputs.contains_key("labels") {
+            "labels"
+        } else {
+            "field"
+        };
         if let Some(g) = &meta.grid {
-            let s = g.spacing;
-            if (s[1] / s[0] - 1.0).abs() > 1e-6 || (s[2] / s[0] - 1.0).abs() > 1e-6 {
-                return Err(StageError::input(
-                    "labels",
-                    format!("voxels must be cubic, spacing is {s:?} m"),
-                ));
-            }
+            check_cubic(port, g.spacing)?;
         }
         // The number of grains is known only once the labels are read; the memory is the
         // label volume's.
@@ -242,19 +256,18 @@ impl TypedStage for FromLabels {
             }
             (v, f.grid.clone())
         };
-        let s = grid.spacing;
-        if (s[1] / s[0] - 1.0).abs() > 1e-6 || (s[2] / s[0] - 1.0).abs() > 1e-6 {
-            return Err(StageError::input(
-                "labels",
-                format!("voxels must be cubic, spacing is {s:?} m"),
-            ));
-        }
+        let port = if inputs.contains_key("labels") {
+            "labels"
+        } else {
+            "field"
+        };
+        check_cubic(port, grid.spacing)?;
         let grains = split_labels(&labels, &grid, p).map_err(StageError::failed)?;
         if grains.is_empty() {
             return Err(StageError::failed(
                 "no grain left after dropping border grains and those under min_voxels",
             ));
         }
-        Ok(grain_outputs(&grains))
+        Ok(grain_outputs(grains))
     }
 }

@@ -108,6 +108,6 @@ impl TypedStage for FromMeshes {
             ctx.progress(k as u64 + 1, p.files.len() as u64)?;
         }
         check_nonempty(&grains)?;
-        Ok(grain_outputs(&grains))
+        Ok(grain_outputs(grains))
     }
 }

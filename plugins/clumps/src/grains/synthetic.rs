@@ -4,7 +4,7 @@ use super::{
     check_nonempty, check_voxel, grain_output_ports, grain_outputs, preflight_grains, GrainMask,
 };
 use crate::shape::{gaussian_random_field, StarShape, VoxelizeError};
-use grainpipe_core::distributions::SizeDistribution;
+use grainpipe_core::distributions::{SampleCheck, SizeDistribution};
 use grainpipe_core::spatial::random_quaternion;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::*;
@@ -17,7 +17,7 @@ pub struct SyntheticParams {
     /// number of grains
     #[param(default = 50)]
     pub count: usize,
-    /// law of the volume-equivalent diameter (median = D50)
+    /// law of the volume-equivalent diameter (median = D50); drawn truncated at the grain-size limit 5e7^(1/3) voxel_size / (2 length_to_thickness), 405 um by default (a law cut by more than 0.1 % there is refused)
     // Silica foundry sand: D50 = 140 um (paper, GS14); log-normal width assumed.
     #[param(default = SizeDistribution::Lognormal {
         median: Q::new(140e-6),
@@ -107,32 +107,111 @@ pub fn synthetic_shape(
     )
 }
 
-/// Synthetic grain `k` drawn from `rng` (the stage's stream `k`).
+/// Voxels a grain's box may hold before the stage refuses to draw it (about 100 MB of mask
+/// and labels): the voxelizer's own hard limit is 8x larger.
+pub const MAX_GRAIN_VOXELS: f64 = 5e7;
+
+/// Largest size law mass the grain-size limit may cut before preflight refuses: beyond it the
+/// drawn sizes would no longer follow the requested law (KS distance ~ the cut mass).
+pub const MAX_CUT_MASS: f64 = 1e-3;
+
+/// Largest volume-equivalent diameter whose grain box stays within [`MAX_GRAIN_VOXELS`].
+/// The box edge of a grain of diameter d is taken as 2 d L/T: d (L/T)^(2/3) (W/T)^(-1/3)
+/// is its stretched length, and the factor covers the radius spread exp(3 roughness) and
+/// the aspect spread of that one grain, so the bound holds with room.
+pub fn grain_size_limit(p: &SyntheticParams) -> f64 {
+    MAX_GRAIN_VOXELS.cbrt() * p.voxel_size.si() / (2.0 * p.length_to_thickness)
+}
+
+/// The size law with an upper truncation at `x` added (tightening any `max` already set);
+/// `None` for laws whose kind takes no `max` (bounded by construction).
+pub fn truncate_above(d: &SizeDistribution, x: f64) -> Option<SizeDistribution> {
+    let mut v = serde_json::to_value(d).ok()?;
+    let o = v.as_object_mut()?;
+    let kind = o.get("kind")?.as_str()?;
+    if !matches!(
+        kind,
+        "normal" | "lognormal" | "weibull" | "gamma" | "exponential" | "tabulated"
+    ) {
+        return None;
+    }
+    let cur = o.get("max").and_then(|m| m.as_f64());
+    o.insert("max".into(), serde_json::json!(cur.map_or(x, |c| c.min(x))));
+    serde_json::from_value(v).ok()
+}
+
+/// The law the sampler draws from: `size` truncated at the grain-size limit when its tail
+/// reaches beyond it, and the probability mass that truncation removed. Errors when the cut
+/// exceeds [`MAX_CUT_MASS`] or the law is bounded above the limit.
+pub fn sampled_law(p: &SyntheticParams) -> Result<(SizeDistribution, f64), StageError> {
+    let lim = grain_size_limit(p);
+    let (_, hi) = p.size.bounds();
+    if hi <= lim {
+        return Ok((p.size.clone(), 0.0));
+    }
+    let cut = 1.0 - p.size.cdf(lim);
+    let vox = (2.0 * hi.min(p.size.quantile(1.0 - MAX_CUT_MASS)) * p.length_to_thickness
+        / p.voxel_size.si())
+    .powi(3);
+    let refuse = |why: String| {
+        StageError::param(
+            "voxel_size",
+            format!(
+                "{why}; the largest grains would need ~{vox:.0} voxels (limit {MAX_GRAIN_VOXELS:.0}): \
+                 use a larger voxel_size, or set size.max to at most {:.1} um",
+                lim * 1e6
+            ),
+        )
+    };
+    if cut > MAX_CUT_MASS {
+        return Err(refuse(format!(
+            "the grain-size limit {:.1} um cuts {:.2} % of the size law (at most {} % may be cut)",
+            lim * 1e6,
+            cut * 100.0,
+            MAX_CUT_MASS * 100.0
+        )));
+    }
+    match truncate_above(&p.size, lim) {
+        Some(t) => Ok((t, cut)),
+        None => Err(refuse(format!(
+            "the size law reaches {:.1} um, above the grain-size limit {:.1} um",
+            hi * 1e6,
+            lim * 1e6
+        ))),
+    }
+}
+
+/// Synthetic grain `k` drawn from `rng` (the stage's stream `k`), its diameter from `law`.
 fn synthetic_grain(
     p: &SyntheticParams,
+    law: &SizeDistribution,
     rng: &mut rand_chacha::ChaCha8Rng,
     k: usize,
-) -> Result<GrainMask, VoxelizeError> {
-    let d = p.size.sample(rng);
+) -> Result<(GrainMask, f64), VoxelizeError> {
+    let d = law.sample(rng);
     let (shape, area) = synthetic_shape(p, rng, d);
     let (dims, origin, mask) = shape.voxelize(p.voxel_size.si())?;
-    Ok(GrainMask {
-        dims,
-        voxel: p.voxel_size.si(),
-        origin,
-        mask,
-        source: format!("synthetic #{k}"),
-        area: Some(area),
-    })
+    Ok((
+        GrainMask {
+            dims,
+            voxel: p.voxel_size.si(),
+            origin,
+            mask,
+            source: format!("synthetic #{k}"),
+            area: Some(area),
+        },
+        d,
+    ))
 }
 
 impl TypedStage for Synthetic {
     type Params = SyntheticParams;
-    type Plan = ();
+    /// The size law the sampler draws from (`size` truncated at the grain-size limit).
+    type Plan = SizeDistribution;
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "grains.synthetic",
-            "1.1.0",
+            "1.2.0",
             "Random star-shaped grains: radius exp(g) with g a Gaussian random field on \
              the sphere (power-law spectrum, fitted to the real grains of \
              data/sand-grains), stretched to random length/width/thickness ratios (VCCTL \
@@ -141,7 +220,11 @@ impl TypedStage for Synthetic {
         )
         .outputs(grain_output_ports())
     }
-    fn preflight(&self, p: &Self::Params, _: &InputMetas) -> Result<Preflight, StageError> {
+    fn preflight(
+        &self,
+        p: &Self::Params,
+        _: &InputMetas,
+    ) -> Result<Preflight<SizeDistribution>, StageError> {
         check_voxel("voxel_size", p.voxel_size.si())?;
         p.size
             .validate()
@@ -175,47 +258,49 @@ impl TypedStage for Synthetic {
                 "need 1 <= min_degree <= max_degree <= 200",
             ));
         }
-        let vox =
-            (2.0 * p.size.practical_max() * p.length_to_thickness / p.voxel_size.si()).powi(3);
-        if vox > 5e7 {
-            return Err(StageError::param(
-                "voxel_size",
-                format!("a grain would need ~{vox:.0} voxels: use a larger voxel_size"),
-            ));
-        }
-        Ok(preflight_grains(
-            &self.info(),
-            Some(p.count),
-            vox / 8.0,
-            Some(p.size.mean()),
-        ))
+        let (law, _) = sampled_law(p)?;
+        // Memory: the mean grain's box (stretched length, radius spread exp(2 roughness),
+        // one empty layer each side) on every axis.
+        let stretch = (p.length_to_thickness.powi(2) / p.width_to_thickness).cbrt();
+        let edge = law.mean() * stretch * (2.0 * p.roughness).exp() / p.voxel_size.si() + 3.0;
+        Ok(
+            preflight_grains(&self.info(), Some(p.count), edge.powi(3), Some(law.mean()))
+                .with_plan(law),
+        )
     }
     fn run(
         &self,
         p: &Self::Params,
-        _: &(),
+        law: &SizeDistribution,
         _: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
         let done = std::sync::atomic::AtomicU64::new(0);
-        let grains: Vec<GrainMask> = (0..p.count)
+        let drawn: Vec<(GrainMask, f64)> = (0..p.count)
             .into_par_iter()
             .map(|k| {
-                let g = synthetic_grain(p, &mut ctx.substream(k as u64), k)
+                let g = synthetic_grain(p, law, &mut ctx.substream(k as u64), k)
                     .map_err(|e| StageError::failed(e.to_string()))?;
                 let c = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
                 ctx.progress(c, p.count as u64)?;
                 Ok(g)
             })
             .collect::<Result<_, StageError>>()?;
+        let (grains, d): (Vec<GrainMask>, Vec<f64>) = drawn.into_iter().unzip();
         check_nonempty(&grains)?;
-        Ok(grain_outputs(&grains))
+        if let Some(w) = size_law_warning(p, law, &d) {
+            ctx.warn(&w);
+        }
+        Ok(grain_outputs(grains))
     }
 }
 
 /// Synthetic grains without a pipeline (tests, benchmark): `count` grains from `seed`, the
 /// same as the stage gives with step seed `seed`.
 pub fn synthetic_grains(p: &SyntheticParams, seed: u64) -> Vec<GrainMask> {
+    let law = sampled_law(p)
+        .expect("size law within the grain-size limit")
+        .0;
     (0..p.count)
         .into_par_iter()
         .map(|k| {
@@ -223,7 +308,16 @@ pub fn synthetic_grains(p: &SyntheticParams, seed: u64) -> Vec<GrainMask> {
                 seed,
                 &(k as u64).to_le_bytes(),
             ));
-            synthetic_grain(p, &mut rng, k).expect("voxelize")
+            synthetic_grain(p, &law, &mut rng, k).expect("voxelize").0
         })
         .collect()
+}
+
+/// The warning the stage gives when the drawn diameters fail the KS test against the
+/// requested law (the grain-size limit cut its tail): `None` when they pass.
+pub fn size_law_warning(p: &SyntheticParams, law: &SizeDistribution, d: &[f64]) -> Option<String> {
+    let cut = 1.0 - p.size.cdf(law.bounds().1);
+    SampleCheck::new(d, &p.size, 0, d.len() as u64)
+        .with_limit(law.bounds().1, cut)
+        .warning("grains.synthetic: volume-equivalent diameters")
 }
