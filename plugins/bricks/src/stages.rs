@@ -3,7 +3,9 @@
 use crate::assemble::{self, Assembly};
 use crate::fill::{FillSettings, FillStats, Filler, Mode};
 use crate::sdf::Sdf;
-use grainpipe_core::distributions::{ks_critical_value, ks_distance, SizeDistribution};
+use grainpipe_core::distributions::{
+    ks_critical_value, ks_distance, SampleCheck, SizeDistribution,
+};
 use grainpipe_core::params::ParamType;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
@@ -388,6 +390,17 @@ impl BrickParams {
             ctx.rng(),
         );
         f.fill(ctx)?;
+        // Rejected draws bias the radii (the 1A brick rejects large spheres that do not fit):
+        // say so when the sample fails its own KS test, with how far the mean moved.
+        let check = SampleCheck::new(
+            &drawn_radii(&f),
+            &self.radius,
+            f.stats.rejected,
+            f.stats.draws,
+        );
+        if let Some(w) = check.warning("the radii of the unit brick") {
+            ctx.warn(&w);
+        }
         let asm = tile(&f, numbers);
         Ok(finish(&f, asm, mode, self, brick.excluded.clone()))
     }
@@ -401,6 +414,16 @@ fn outputs() -> Vec<PortSpec> {
     ]
 }
 
+/// The radii drawn from the size law (not those placed by other rules).
+fn drawn_radii(f: &Filler) -> Vec<f64> {
+    f.rad
+        .iter()
+        .zip(&f.drawn)
+        .filter(|(_, d)| **d)
+        .map(|(r, _)| *r)
+        .collect()
+}
+
 /// Everything computed after the unit brick is filled.
 fn finish(
     f: &Filler,
@@ -412,13 +435,7 @@ fn finish(
     let max_gap = c.contact_parameter * f.rmean;
     let contacts = assemble::contacts(&asm.pos, &asm.rad, asm.size, max_gap);
     let faces = assemble::face_lists(&asm, mode, max_gap);
-    let drawn: Vec<f64> = f
-        .rad
-        .iter()
-        .zip(&f.drawn)
-        .filter(|(_, d)| **d)
-        .map(|(r, _)| *r)
-        .collect();
+    let drawn = drawn_radii(f);
     let ks = ks_distance(&drawn, &c.radius);
     let mean_drawn = drawn.iter().sum::<f64>() / drawn.len().max(1) as f64;
     let st: &FillStats = &f.stats;

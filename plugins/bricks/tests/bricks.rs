@@ -471,3 +471,59 @@ fn curved_domain_takes_any_cut_out_ball() {
     assert!(val(t, "face_fraction_zmin") >= 0.4 && val(t, "body_fraction") >= 0.4);
     assert_eq!(pk.domain.excluded.len(), 1);
 }
+
+/// Records warnings (the engine prints them).
+#[derive(Default)]
+struct WarningLog(std::sync::Mutex<Vec<String>>);
+impl grainpipe_core::stage::Reporter for WarningLog {
+    fn progress(&self, _: u64, _: u64) {}
+    fn message(&self, level: grainpipe_core::stage::Level, text: &str) {
+        if level == grainpipe_core::stage::Level::Warn {
+            self.0.lock().unwrap().push(text.to_string());
+        }
+    }
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
+
+#[test]
+fn a_sample_failing_its_ks_test_is_explained_in_a_warning() {
+    // Example 1A rejects large draws that no longer fit, which biases the radii: the
+    // report's own KS columns decide whether a warning is due, and the warning must give
+    // the reason and the mean shift the report's mean columns show.
+    let p = Method1Params::default();
+    let log = WarningLog::default();
+    let pf = Method1.preflight(&p, &Default::default()).unwrap();
+    let o = Method1
+        .run(&p, &pf.plan, &Default::default(), &RunContext::new(7, &log))
+        .unwrap();
+    let (_, _, t) = parts(&o);
+    let (ks, critical) = (val(t, "ks_distance"), val(t, "ks_critical_0_05"));
+    let warnings = log.0.lock().unwrap().clone();
+    let ks_warnings: Vec<&String> = warnings
+        .iter()
+        .filter(|w| w.contains("Kolmogorov-Smirnov"))
+        .collect();
+    if ks <= critical {
+        assert!(ks_warnings.is_empty(), "{warnings:?}");
+        return;
+    }
+    assert_eq!(ks_warnings.len(), 1, "{warnings:?}");
+    let w = ks_warnings[0];
+    assert!(
+        w.contains(&format!("{ks:.3}")) && w.contains(&format!("{critical:.3}")),
+        "{w}"
+    );
+    let rejected = val(t, "rejected_draws");
+    assert!(rejected > 0.0 && w.contains("rejected"), "{w}");
+    let law_mean = p.common.radius.mean();
+    let drawn_mean = val(t, "mean_radius_drawn");
+    assert!(
+        w.contains(&format!(
+            "({:+.1} %)",
+            100.0 * (drawn_mean / law_mean - 1.0)
+        )),
+        "{w}"
+    );
+}
