@@ -292,14 +292,19 @@ pub fn default_max_size() -> Result<Option<u64>, String> {
     }
 }
 
-/// `2GB`, `500 MiB`, `1.5G`, `1000000` [bytes]: decimal (kB, MB, GB, TB) and binary (KiB,
-/// MiB, GiB, TiB) units; a bare K/M/G/T is binary, as `du -h` prints it.
-pub fn parse_size(text: &str) -> Result<u64, String> {
+/// The leading unsigned decimal number of `text` and the rest (`"2GB"` -> `("2", "GB")`).
+fn split_number(text: &str) -> (&str, &str) {
     let t = text.trim();
     let split = t
         .find(|c: char| !(c.is_ascii_digit() || c == '.'))
         .unwrap_or(t.len());
-    let (num, unit) = t.split_at(split);
+    t.split_at(split)
+}
+
+/// `2GB`, `500 MiB`, `1.5G`, `1000000` [bytes]: decimal (kB, MB, GB, TB) and binary (KiB,
+/// MiB, GiB, TiB) units; a bare K/M/G/T is binary, as `du -h` prints it.
+pub fn parse_size(text: &str) -> Result<u64, String> {
+    let (num, unit) = split_number(text);
     let n: f64 = num
         .parse()
         .map_err(|_| format!("`{text}` is not a size; write e.g. `2GB` or `500MiB`"))?;
@@ -324,11 +329,7 @@ pub fn parse_size(text: &str) -> Result<u64, String> {
 
 /// `7d`, `12h`, `30m`, `90s`, `2w`: an age for `--older-than`.
 pub fn parse_age(text: &str) -> Result<Duration, String> {
-    let t = text.trim();
-    let split = t
-        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
-        .unwrap_or(t.len());
-    let (num, unit) = t.split_at(split);
+    let (num, unit) = split_number(text);
     let n: f64 = num
         .parse()
         .map_err(|_| format!("`{text}` is not an age; write e.g. `7d`, `12h` or `30m`"))?;
