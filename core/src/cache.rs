@@ -1,6 +1,6 @@
 //! The content-addressed step cache: one file `<key>.bin` per step result.
 //!
-//! Entry layout (format 4): `GRPCACH4` | BLAKE3(key, header, payload) (32 bytes) | header
+//! Entry layout (format 5): `GRPCACH5` | BLAKE3(key, header, payload) (32 bytes) | header
 //! length (u32 LE) | header (JSON: step, stage, pipeline, creation time) | payload (postcard of
 //! the outputs). The header comes first and is length-prefixed so that `pipe cache` can list
 //! entries without reading multi-gigabyte payloads; the checksum covers it too, so a damaged
@@ -18,7 +18,8 @@ use std::time::{Duration, SystemTime};
 /// or the entry layout changes, so entries written by an older grainpipe are recomputed
 /// instead of misread. 2: field component conventions, bond attributes, collections.
 /// 3: a BLAKE3 checksum of (key, payload) after the magic. 4: a header naming the step.
-pub const CACHE_MAGIC: &[u8; 8] = b"GRPCACH4";
+/// 5: body radii in contact graphs.
+pub const CACHE_MAGIC: &[u8; 8] = b"GRPCACH5";
 
 /// What wrote an entry (shown by `pipe cache`; not used to decide hits).
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]

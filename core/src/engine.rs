@@ -615,14 +615,9 @@ fn export_options(
     if unknown {
         return None;
     }
-    let mut options = crate::registry::ExportOptions::new();
-    for o in &declared {
-        let v = e
-            .options
-            .get(o.name)
-            .cloned()
-            .unwrap_or_else(|| o.default.clone());
-        options.insert(o.name.to_string(), v);
+    let mut options = exporter.default_options();
+    for (key, value) in &e.options {
+        options.insert(key.clone(), value.clone());
     }
     match exporter.check_options(&options) {
         Ok(()) => Some(options),
@@ -1176,7 +1171,7 @@ pub fn execute(
             })?;
             let prov = provenance(doc, plan, step, &e.port, &timings);
             e.exporter
-                .write_with(artifact, &e.path, &prov, &e.options)
+                .write(artifact, &e.path, &prov, &e.options)
                 .map_err(|m| {
                     PipelineError::run(&doc.file, Some(e.loc), format!("export failed: {m}"))
                 })?;
@@ -1247,7 +1242,8 @@ fn check_outputs(
     Ok(())
 }
 
-/// Provenance written into every exported file.
+/// Provenance written into every exported file: the step's result provenance, the output
+/// port and the run's stage timings.
 fn provenance(
     doc: &PipelineDoc,
     plan: &Plan,
@@ -1255,6 +1251,24 @@ fn provenance(
     port: &str,
     timings: &[(String, f64)],
 ) -> Provenance {
+    let mut p = result_provenance(doc, plan, step);
+    p.entries
+        .insert("step".into(), format!("{}.{port}", step.id));
+    p.entries.insert(
+        "stage_timings_s".into(),
+        timings
+            .iter()
+            .map(|(s, t)| format!("{s}={t:.3}"))
+            .collect::<Vec<_>>()
+            .join(", "),
+    );
+    p
+}
+
+/// Provenance of a step's results: what the exported files of `step` carry, except the
+/// output port (`step` is the step id here) and the run's timings, which are not a property
+/// of the result. Python's `Results.provenance` shows it.
+pub fn result_provenance(doc: &PipelineDoc, plan: &Plan, step: &PlannedStep) -> Provenance {
     let info = step.stage.info();
     let mut p = Provenance::default();
     let e = &mut p.entries;
@@ -1262,7 +1276,7 @@ fn provenance(
     e.insert("pipeline_file".into(), doc.file.display().to_string());
     e.insert("pipeline_name".into(), doc.name.clone());
     e.insert("seed".into(), plan.seed.to_string());
-    e.insert("step".into(), format!("{}.{port}", step.id));
+    e.insert("step".into(), step.id.clone());
     e.insert("stage".into(), format!("{} {}", info.id, info.version));
     e.insert("stage_origin".into(), step.origin.clone());
     e.insert("stage_seed".into(), step.seed.to_string());
@@ -1278,14 +1292,6 @@ fn provenance(
                 .join(", "),
         );
     }
-    e.insert(
-        "stage_timings_s".into(),
-        timings
-            .iter()
-            .map(|(s, t)| format!("{s}={t:.3}"))
-            .collect::<Vec<_>>()
-            .join(", "),
-    );
     // The file as written when nothing was overridden (it keeps its comments); otherwise
     // what actually ran, with the overrides listed next to it.
     if doc.overrides.is_empty() && doc.seed == doc.file_seed {

@@ -527,6 +527,10 @@ pub struct ContactGraph {
     pub bond_attributes: IndexMap<String, BodyAttribute>,
     /// Body positions, so the graph can be drawn on its own (lines between centres).
     pub positions: Vec<[f64; 3]>,
+    /// Body radii [m], one per position, so the bodies can be glyphed from the graph alone;
+    /// empty when the bodies are not spheres.
+    #[serde(default)]
+    pub radii: Vec<f64>,
 }
 
 impl ContactGraph {
@@ -545,6 +549,12 @@ impl ContactGraph {
                     "contact graph pair ({i}, {j}) refers past its {n} positions"
                 ));
             }
+        }
+        if !self.radii.is_empty() && self.radii.len() != n {
+            return Err(format!(
+                "contact graph has {} radii for {n} positions",
+                self.radii.len()
+            ));
         }
         for (name, a) in &self.bond_attributes {
             if a.values.len() != self.bonds.len() {

@@ -31,13 +31,6 @@ pub trait Exporter: Send + Sync {
     fn extensions(&self) -> &'static [&'static str];
     fn accepts(&self, kind: ArtifactKind) -> bool;
     fn doc(&self) -> &'static str;
-    /// Writes atomically: a crash never leaves a partial file at `path`.
-    fn write(
-        &self,
-        artifact: &Artifact,
-        path: &Path,
-        provenance: &Provenance,
-    ) -> Result<(), String>;
     /// The options this format takes under an export's `with:`; none by default.
     fn options(&self) -> Vec<ExportOption> {
         Vec::new()
@@ -47,15 +40,31 @@ pub trait Exporter: Send + Sync {
     fn check_options(&self, _options: &ExportOptions) -> Result<(), (String, String)> {
         Ok(())
     }
-    /// Writes with options; formats that declare options override this. Atomic as `write`.
-    fn write_with(
+    /// Writes atomically: a crash never leaves a partial file at `path`. `options` holds
+    /// every declared option, the export's value or else the default (the engine fills it;
+    /// other callers pass [`Exporter::default_options`] or use [`Exporter::write_defaults`]).
+    fn write(
         &self,
         artifact: &Artifact,
         path: &Path,
         provenance: &Provenance,
-        _options: &ExportOptions,
+        options: &ExportOptions,
+    ) -> Result<(), String>;
+    /// Every declared option at its default: what an export without `with:` gets.
+    fn default_options(&self) -> ExportOptions {
+        self.options()
+            .into_iter()
+            .map(|o| (o.name.to_string(), o.default))
+            .collect()
+    }
+    /// [`Exporter::write`] with every option at its default.
+    fn write_defaults(
+        &self,
+        artifact: &Artifact,
+        path: &Path,
+        provenance: &Provenance,
     ) -> Result<(), String> {
-        self.write(artifact, path, provenance)
+        self.write(artifact, path, provenance, &self.default_options())
     }
 }
 

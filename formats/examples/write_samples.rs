@@ -161,6 +161,7 @@ fn graph() -> ContactGraph {
             [1e-4, 1e-4, 0.0],
             [2e-4, 1e-4, 5e-5],
         ],
+        radii: vec![5e-5, 5e-5, 4e-5, 6e-5],
     }
 }
 
@@ -217,7 +218,7 @@ fn main() -> Result<(), String> {
         if !e.accepts(a.kind()) {
             return Err(format!("{} does not take {}", e.name(), a.kind()));
         }
-        e.write(a, &path, &prov)
+        e.write_defaults(a, &path, &prov)
     };
 
     let img = phase_image();

@@ -157,10 +157,7 @@ impl Exporter for LammpsDataExporter {
     fn check_options(&self, o: &ExportOptions) -> Result<(), (String, String)> {
         density(o).map(|_| ()).map_err(|m| ("density".into(), m))
     }
-    fn write(&self, a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
-        self.write_with(a, path, prov, &ExportOptions::new())
-    }
-    fn write_with(
+    fn write(
         &self,
         a: &Artifact,
         path: &Path,
@@ -249,10 +246,7 @@ impl Exporter for LammpsMoleculeExporter {
     fn check_options(&self, o: &ExportOptions) -> Result<(), (String, String)> {
         density(o).map(|_| ()).map_err(|m| ("density".into(), m))
     }
-    fn write(&self, a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
-        self.write_with(a, path, prov, &ExportOptions::new())
-    }
-    fn write_with(
+    fn write(
         &self,
         a: &Artifact,
         path: &Path,
@@ -332,7 +326,13 @@ impl Exporter for YadeExporter {
          spheres, `ymport.textClumps(file)` builds one clump per clump_id. Select it with \
          `format: yade` (e.g. `to: out/bed.txt`)."
     }
-    fn write(&self, a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    fn write(
+        &self,
+        a: &Artifact,
+        path: &Path,
+        prov: &Provenance,
+        _options: &ExportOptions,
+    ) -> Result<(), String> {
         let Artifact::Packing(p) = a else {
             return Err(format!("yade takes a Packing, not a {}", a.kind()));
         };

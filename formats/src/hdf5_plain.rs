@@ -20,7 +20,8 @@
 //! - ClumpLibrary (group `library`): `sphere_offset` (S,3), `sphere_radius` (S),
 //!   `first_sphere` (C+1), `volume`, `bounding_radius`, `principal_inertia` (C,3; per unit
 //!   density, m^5), `principal_axes` (C,3,3), `clump_source` (C) and attribute `source`;
-//! - ContactGraph: `pairs` (M,2), `gaps` (M), `bonds` (B,2), `positions` (N,3), group
+//! - ContactGraph: `pairs` (M,2), `gaps` (M), `bonds` (B,2), `positions` (N,3), `radius` (N,
+//!   only when the bodies are spheres of known radius), group
 //!   `bond_attributes` (one dataset per name, B values, like a packing's `attributes`), group
 //!   `faces` with datasets `xmin` .. `zmax`;
 //! - Table: group `table` (attribute `name`, `column_order`), one dataset per column with
@@ -369,6 +370,9 @@ fn write_graph(g: &Group, c: &ContactGraph, z: u8) -> H5Result<()> {
     quantity(g, "bonds", &[c.bonds.len(), 2], &bonds, "1", z)?;
     let pos: Vec<f64> = c.positions.iter().flatten().copied().collect();
     quantity(g, "positions", &[c.positions.len(), 3], &pos, "m", z)?;
+    if !c.radii.is_empty() {
+        quantity(g, "radius", &[c.radii.len()], &c.radii, "m", z)?;
+    }
     let faces = g.create_group("faces")?;
     for (f, name) in c.faces.iter().zip(FACE_NAMES) {
         let v: Vec<i64> = f.iter().map(|&i| i as i64).collect();
@@ -642,6 +646,12 @@ fn read_graph(g: &Group) -> H5Result<ContactGraph> {
             IndexMap::new()
         },
         positions: pos.chunks_exact(3).map(|p| [p[0], p[1], p[2]]).collect(),
+        // Graphs of non-spherical bodies (and files written before radii) have none.
+        radii: if g.link_exists("radius") {
+            f64s(g, "radius")?
+        } else {
+            Vec::new()
+        },
     })
 }
 
@@ -805,10 +815,9 @@ crate::vtk_xml::exporter!(
      dataset, root attribute `grainpipe_kind`, provenance as root attributes (seeds as u64); \
      datasets chunked and deflated (option `compression`). pyvista.read does not know this \
      layout: export `.vtkhdf` (images) or `.vtp` (packings) for pyvista",
-    write_h5,
     options: vec![compression_option()],
     check: check_compression,
-    write_with: write_h5_options
+    write: write_h5_options
 );
 
 fn write_h5_options(

@@ -629,15 +629,16 @@ impl TypedStage for ImportTiff {
         if !path.is_dir() {
             check_path(&p.path)?;
         }
-        let probe = crate::tiff_io::probe_tiff(path).map_err(|e| StageError::param("path", e))?;
-        if p.spacing.is_none() && probe.spacing.is_none() {
+        let header =
+            crate::tiff_io::tiff_header(path).map_err(|e| StageError::param("path", e))?;
+        if p.spacing.is_none() && header.probe.spacing.is_none() {
             return Err(StageError::param(
                 "spacing",
                 "the stack states no voxel size (no ImageJ calibration, no resolution in cm); \
                  give it, e.g. `spacing: 4 um`",
             ));
         }
-        preflight_common(&self.info(), probe.into(), p.spacing, &p.options)
+        preflight_common(&self.info(), header, p.spacing, &p.options)
     }
 
     fn run(

@@ -384,10 +384,9 @@ crate::vtk_xml::exporter!(
      variables x, y, z at voxel centres [m], phase table as flag_values/flag_meanings, \
      provenance as global attributes (seeds as uint64); data variable chunked and deflated \
      (option `compression`)",
-    write_nc,
     options: vec![crate::h5util::compression_option()],
     check: crate::h5util::check_compression,
-    write_with: write_nc_options
+    write: write_nc_options
 );
 
 fn write_nc_options(

@@ -216,64 +216,48 @@ pub fn write_raw_mhd(
     atomic_write_bytes(&mhd, head.as_bytes())
 }
 
-/// The `raw` exporter.
-pub struct RawExporter;
+crate::vtk_xml::exporter!(
+    RawExporter,
+    "raw",
+    &["mhd", "raw"],
+    [PhaseImage, Field],
+    "Headerless raw voxels (x fastest, little-endian; u8 labels, f32/f64 values, \
+     components interleaved) as <name>.raw plus a MetaImage header <name>.mhd (DimSize, \
+     ElementType, ElementSpacing, Offset = first voxel centre, byte order), which ITK, \
+     3D Slicer, Avizo, Dragonfly and Fiji open; `to:` may name either file. import.raw \
+     reads the .raw back.",
+    options: vec![grainpipe_core::registry::ExportOption {
+        name: "length_unit",
+        doc: "unit of ElementSpacing and Offset in the .mhd: `mm` (ITK/3D Slicer \
+              convention), `um` or `m`",
+        default: serde_json::json!("mm"),
+    }],
+    check: check_raw_options,
+    write: write_raw_options
+);
 
-impl grainpipe_core::Exporter for RawExporter {
-    fn name(&self) -> &'static str {
-        "raw"
-    }
-    fn extensions(&self) -> &'static [&'static str] {
-        &["mhd", "raw"]
-    }
-    fn accepts(&self, kind: grainpipe_core::ArtifactKind) -> bool {
-        matches!(
-            kind,
-            grainpipe_core::ArtifactKind::PhaseImage | grainpipe_core::ArtifactKind::Field
-        )
-    }
-    fn doc(&self) -> &'static str {
-        "Headerless raw voxels (x fastest, little-endian; u8 labels, f32/f64 values, \
-         components interleaved) as <name>.raw plus a MetaImage header <name>.mhd (DimSize, \
-         ElementType, ElementSpacing, Offset = first voxel centre, byte order), which ITK, \
-         3D Slicer, Avizo, Dragonfly and Fiji open; `to:` may name either file. import.raw \
-         reads the .raw back."
-    }
-    fn options(&self) -> Vec<grainpipe_core::registry::ExportOption> {
-        vec![grainpipe_core::registry::ExportOption {
-            name: "length_unit",
-            doc: "unit of ElementSpacing and Offset in the .mhd: `mm` (ITK/3D Slicer \
-                  convention), `um` or `m`",
-            default: serde_json::json!("mm"),
-        }]
-    }
-    fn check_options(
-        &self,
-        options: &grainpipe_core::registry::ExportOptions,
-    ) -> Result<(), (String, String)> {
-        length_unit(&options["length_unit"]).map_err(|m| ("length_unit".to_string(), m))?;
-        Ok(())
-    }
-    fn write(
-        &self,
-        artifact: &grainpipe_core::Artifact,
-        path: &Path,
-        provenance: &grainpipe_core::Provenance,
-    ) -> Result<(), String> {
-        write_raw_mhd(artifact, path, provenance, 1e-3)
-    }
-    fn write_with(
-        &self,
-        artifact: &grainpipe_core::Artifact,
-        path: &Path,
-        provenance: &grainpipe_core::Provenance,
-        options: &grainpipe_core::registry::ExportOptions,
-    ) -> Result<(), String> {
-        let unit = options
-            .get("length_unit")
-            .map(length_unit)
-            .transpose()?
-            .unwrap_or(1e-3);
-        write_raw_mhd(artifact, path, provenance, unit)
-    }
+/// Metres per `length_unit` (millimetres when the option is absent).
+fn unit_of(options: &grainpipe_core::registry::ExportOptions) -> Result<f64, String> {
+    Ok(options
+        .get("length_unit")
+        .map(length_unit)
+        .transpose()?
+        .unwrap_or(1e-3))
+}
+
+fn check_raw_options(
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<(), (String, String)> {
+    unit_of(options)
+        .map(|_| ())
+        .map_err(|m| ("length_unit".to_string(), m))
+}
+
+fn write_raw_options(
+    artifact: &grainpipe_core::Artifact,
+    path: &Path,
+    provenance: &grainpipe_core::Provenance,
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<(), String> {
+    write_raw_mhd(artifact, path, provenance, unit_of(options)?)
 }

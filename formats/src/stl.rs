@@ -344,15 +344,7 @@ impl Exporter for StlExporter {
         scale_of(&o["length_unit"]).map_err(|m| ("length_unit".to_string(), m))?;
         Ok(())
     }
-    fn write(&self, a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
-        let o = self
-            .options()
-            .into_iter()
-            .map(|x| (x.name.to_string(), x.default))
-            .collect();
-        self.write_with(a, path, prov, &o)
-    }
-    fn write_with(
+    fn write(
         &self,
         a: &Artifact,
         path: &Path,

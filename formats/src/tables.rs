@@ -370,7 +370,7 @@ pub fn write_json(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), St
                 .zip(&g.faces)
                 .map(|(n, f)| (n.to_string(), json!(f)))
                 .collect();
-            json!({
+            let mut v = json!({
                 "kind": "ContactGraph",
                 "contacts": g.contacts.iter().map(|c| json!([c.i, c.j, num(c.gap)])).collect::<Vec<_>>(),
                 "bonds": g.bonds,
@@ -379,7 +379,11 @@ pub fn write_json(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), St
                 }))).collect::<Map<String, Value>>(),
                 "faces": faces,
                 "positions": g.positions.iter().map(|p| p.iter().map(|&x| num(x)).collect::<Vec<_>>()).collect::<Vec<_>>(),
-            })
+            });
+            if !g.radii.is_empty() {
+                v["radius"] = json!(g.radii.iter().map(|&x| num(x)).collect::<Vec<_>>());
+            }
+            v
         }
         other => {
             return Err(format!(
@@ -511,6 +515,12 @@ pub fn read_contact_graph_json(path: &Path) -> Result<ContactGraph, String> {
     for p in v["positions"].as_array().into_iter().flatten() {
         g.positions.push([f(&p[0]), f(&p[1]), f(&p[2])]);
     }
+    g.radii = v["radius"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(f)
+        .collect();
     g.validate().map_err(at)?;
     Ok(g)
 }

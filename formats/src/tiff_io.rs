@@ -122,9 +122,12 @@ fn for_each_page(
     Ok((p, cal))
 }
 
-/// Size, type and calibration of a stack without decoding pixel data.
-pub fn probe_tiff(path: &Path) -> Result<Probe, String> {
-    for_each_page(path, |_, _| Ok(())).map(|(p, _)| p)
+/// Size, type, calibration and periodic axes of a stack without decoding pixel data.
+pub fn tiff_header(path: &Path) -> Result<crate::headers::Header, String> {
+    for_each_page(path, |_, _| Ok(())).map(|(probe, cal)| crate::headers::Header {
+        probe,
+        periodic: cal.periodic,
+    })
 }
 
 /// Reads a whole stack (x fastest, then y, then z).
@@ -185,7 +188,7 @@ pub fn read_tiff(path: &Path) -> Result<Volume, String> {
         convention: grainpipe_core::ComponentConvention::Plain,
         spacing: cal.spacing,
         origin: cal.origin,
-        periodic: [false; 3],
+        periodic: cal.periodic,
         data,
         phases: cal.phases,
     })
@@ -204,6 +207,8 @@ struct Calibration {
     origin: Option<[f64; 3]>,
     phases: Vec<grainpipe_core::Phase>,
     unit: String,
+    /// Periodic axes, from grainpipe's own key (other programs do not state them).
+    periodic: [bool; 3],
 }
 
 /// Metres per ImageJ length unit, `None` for units that are not lengths ("pixel").
@@ -279,6 +284,15 @@ fn calibration<R: std::io::Read + std::io::Seek>(d: &mut Decoder<R>) -> Calibrat
         })
         .unwrap_or_default();
     c.unit = key("grainpipe_unit").unwrap_or_default().to_string();
+    c.periodic = key("grainpipe_periodic")
+        .and_then(|s| {
+            let v: Vec<bool> = s
+                .split_whitespace()
+                .map(|x| x.parse().ok())
+                .collect::<Option<_>>()?;
+            <[bool; 3]>::try_from(v).ok()
+        })
+        .unwrap_or_default();
     c
 }
 
@@ -325,6 +339,8 @@ fn description(v: VolumeRef, pages: usize, prov: &grainpipe_core::Provenance) ->
     let f3 = |a: [f64; 3]| format!("{:e} {:e} {:e}", a[0], a[1], a[2]);
     s.push_str(&format!("grainpipe_spacing_m={}\n", f3(g.spacing)));
     s.push_str(&format!("grainpipe_origin_m={}\n", f3(g.origin)));
+    let [px, py, pz] = g.periodic;
+    s.push_str(&format!("grainpipe_periodic={px} {py} {pz}\n"));
     match v {
         VolumeRef::Phase(p) => {
             let phases: Vec<(u8, &str)> = p
@@ -596,65 +612,48 @@ pub fn write_tiff(
     }
 }
 
-/// The `tiff` exporter.
-pub struct TiffExporter;
+crate::vtk_xml::exporter!(
+    TiffExporter,
+    "tiff",
+    &["tif", "tiff"],
+    [PhaseImage, Field],
+    "TIFF stack, one page per z slice (row r of a page = y = r): a phase image as 8-bit \
+     labels, a one-component field as 32-bit float. The voxel size is in the resolution \
+     tags and an ImageJ description (unit=micron, spacing = z step), which Fiji, \
+     Dragonfly, Avizo and tifffile read; exact spacing, origin, phase names and field \
+     unit in grainpipe_* description keys, which import.tiff reads back.",
+    options: vec![grainpipe_core::registry::ExportOption {
+        name: "stack",
+        doc: "`file`: one multi-page TIFF; `directory`: one single-page TIFF per z slice, \
+              `out/ct.tif` giving out/ct/ct_0000.tif, ct_0001.tif, ... (replaced as a \
+              whole)",
+        default: serde_json::json!("file"),
+    }],
+    check: check_tiff_options,
+    write: write_tiff_options
+);
 
-impl grainpipe_core::Exporter for TiffExporter {
-    fn name(&self) -> &'static str {
-        "tiff"
-    }
-    fn extensions(&self) -> &'static [&'static str] {
-        &["tif", "tiff"]
-    }
-    fn accepts(&self, kind: grainpipe_core::ArtifactKind) -> bool {
-        matches!(
-            kind,
-            grainpipe_core::ArtifactKind::PhaseImage | grainpipe_core::ArtifactKind::Field
-        )
-    }
-    fn doc(&self) -> &'static str {
-        "TIFF stack, one page per z slice (row r of a page = y = r): a phase image as 8-bit \
-         labels, a one-component field as 32-bit float. The voxel size is in the resolution \
-         tags and an ImageJ description (unit=micron, spacing = z step), which Fiji, \
-         Dragonfly, Avizo and tifffile read; exact spacing, origin, phase names and field \
-         unit in grainpipe_* description keys, which import.tiff reads back."
-    }
-    fn options(&self) -> Vec<grainpipe_core::registry::ExportOption> {
-        vec![grainpipe_core::registry::ExportOption {
-            name: "stack",
-            doc: "`file`: one multi-page TIFF; `directory`: one single-page TIFF per z slice, \
-                  `out/ct.tif` giving out/ct/ct_0000.tif, ct_0001.tif, ... (replaced as a \
-                  whole)",
-            default: serde_json::json!("file"),
-        }]
-    }
-    fn check_options(
-        &self,
-        options: &grainpipe_core::registry::ExportOptions,
-    ) -> Result<(), (String, String)> {
-        StackLayout::parse(&options["stack"]).map_err(|m| ("stack".to_string(), m))?;
-        Ok(())
-    }
-    fn write(
-        &self,
-        artifact: &grainpipe_core::Artifact,
-        path: &Path,
-        provenance: &grainpipe_core::Provenance,
-    ) -> Result<(), String> {
-        write_tiff(artifact, path, provenance, StackLayout::File)
-    }
-    fn write_with(
-        &self,
-        artifact: &grainpipe_core::Artifact,
-        path: &Path,
-        provenance: &grainpipe_core::Provenance,
-        options: &grainpipe_core::registry::ExportOptions,
-    ) -> Result<(), String> {
-        let layout = options
-            .get("stack")
-            .map(StackLayout::parse)
-            .transpose()?
-            .unwrap_or(StackLayout::File);
-        write_tiff(artifact, path, provenance, layout)
-    }
+fn stack_layout(options: &grainpipe_core::registry::ExportOptions) -> Result<StackLayout, String> {
+    Ok(options
+        .get("stack")
+        .map(StackLayout::parse)
+        .transpose()?
+        .unwrap_or(StackLayout::File))
+}
+
+fn check_tiff_options(
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<(), (String, String)> {
+    stack_layout(options)
+        .map(|_| ())
+        .map_err(|m| ("stack".to_string(), m))
+}
+
+fn write_tiff_options(
+    artifact: &grainpipe_core::Artifact,
+    path: &Path,
+    provenance: &grainpipe_core::Provenance,
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Result<(), String> {
+    write_tiff(artifact, path, provenance, stack_layout(options)?)
 }

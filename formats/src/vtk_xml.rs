@@ -477,6 +477,14 @@ fn graph_poly(g: &ContactGraph, prov: &Provenance) -> Result<Poly, String> {
         coordination[c.j] += 1;
     }
     let ids: Vec<i64> = (0..n as i64).collect();
+    let mut point_data = vec![
+        Array::new("body_id", 1, &ids),
+        Array::new("coordination", 1, &coordination),
+    ];
+    // Lets ParaView glyph the bodies from the graph alone (Glyph filter, scale by `radius`).
+    if !g.radii.is_empty() {
+        point_data.push(Array::new("radius", 1, &g.radii));
+    }
     let faces: Vec<Array> = g
         .faces
         .iter()
@@ -490,10 +498,7 @@ fn graph_poly(g: &ContactGraph, prov: &Provenance) -> Result<Poly, String> {
         points: g.positions.iter().flatten().copied().collect(),
         verts: false,
         lines,
-        point_data: vec![
-            Array::new("body_id", 1, &ids),
-            Array::new("coordination", 1, &coordination),
-        ],
+        point_data,
         cell_data,
         field: field_data(prov, &[], &faces),
     })
@@ -674,10 +679,9 @@ fn pvd_extension<'a>(
 
 macro_rules! exporter {
     // A format with options: `$options` lists them, `$check` validates their values at
-    // preflight, `$write_with` writes with the engine-filled options (`$write` with the
-    // defaults is what callers without options get).
-    ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr, $write:path,
-     options: $options:expr, check: $check:path, write_with: $write_with:path) => {
+    // preflight, `$write` writes with the options (every declared one, defaults filled in).
+    ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr,
+     options: $options:expr, check: $check:path, write: $write:path) => {
         pub struct $ty;
         impl grainpipe_core::Exporter for $ty {
             fn name(&self) -> &'static str { $name }
@@ -686,14 +690,6 @@ macro_rules! exporter {
                 matches!(kind, $(grainpipe_core::ArtifactKind::$kind)|*)
             }
             fn doc(&self) -> &'static str { $doc }
-            fn write(
-                &self,
-                a: &grainpipe_core::Artifact,
-                path: &std::path::Path,
-                prov: &grainpipe_core::Provenance,
-            ) -> Result<(), String> {
-                $write(a, path, prov)
-            }
             fn options(&self) -> Vec<grainpipe_core::registry::ExportOption> {
                 $options
             }
@@ -703,14 +699,14 @@ macro_rules! exporter {
             ) -> Result<(), (String, String)> {
                 $check(options)
             }
-            fn write_with(
+            fn write(
                 &self,
                 a: &grainpipe_core::Artifact,
                 path: &std::path::Path,
                 prov: &grainpipe_core::Provenance,
                 options: &grainpipe_core::registry::ExportOptions,
             ) -> Result<(), String> {
-                $write_with(a, path, prov, options)
+                $write(a, path, prov, options)
             }
         }
     };
@@ -728,6 +724,7 @@ macro_rules! exporter {
                 a: &grainpipe_core::Artifact,
                 path: &std::path::Path,
                 prov: &grainpipe_core::Provenance,
+                _options: &grainpipe_core::registry::ExportOptions,
             ) -> Result<(), String> {
                 $write(a, path, prov)
             }
@@ -752,8 +749,7 @@ exporter!(
     [Packing, ContactGraph],
     "VTK XML PolyData: a packing as one point per sphere (radius, body_id, layer, frozen, \
      clump_index when the packing has clumps, body attributes) or a contact graph as lines \
-     (gap, bonded) between the body centres (body_id, coordination)",
-    write_vtp,
+     (gap, bonded) between the body centres (body_id, coordination, radius when the bodies are spheres)",
     options: vec![grainpipe_core::registry::ExportOption {
         name: "periodic",
         doc: "packings in a periodic box: `as_is` writes every sphere where its body puts it \
@@ -763,7 +759,7 @@ exporter!(
         default: grainpipe_core::serde_json::json!("as_is"),
     }],
     check: check_vtp_options,
-    write_with: write_vtp_options
+    write: write_vtp_options
 );
 
 fn vtp_periodic(
@@ -1647,6 +1643,7 @@ mod tests {
             .into_iter()
             .collect(),
             positions: vec![[0.0; 3], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]],
+            radii: vec![0.5, 0.5, 0.25],
         };
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("g.vtp");
@@ -1663,6 +1660,7 @@ mod tests {
         assert_eq!(gap[0], -1e-6);
         assert!(gap[1].is_nan());
         assert_eq!(f64s(&f, "DataArray", "coordination"), [1.0, 1.0, 0.0]);
+        assert_eq!(f64s(&f, "DataArray", "radius"), [0.5, 0.5, 0.25]);
         // The bonded contact (0, 1) carries bond 0's value, the extra line bond 1's.
         assert_eq!(f64s(&f, "DataArray", "stretch"), [0.25, 0.5]);
         // an attribute with the wrong length is refused
@@ -1675,6 +1673,11 @@ mod tests {
         )
         .unwrap_err();
         assert!(e.contains("`stretch` has 1 values for 2 bonds"), "{e}");
+        // radii must match the positions
+        let mut few = g.clone();
+        few.radii.pop();
+        let e = write_vtp(&Artifact::ContactGraph(few), &path, &Provenance::default()).unwrap_err();
+        assert!(e.contains("2 radii for 3 positions"), "{e}");
         // a pair past the positions is refused
         let mut bad = g;
         bad.contacts[0].j = 9;

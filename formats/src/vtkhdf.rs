@@ -141,10 +141,9 @@ crate::vtk_xml::exporter!(
     "VTKHDF ImageData (HDF5) that pyvista.read and ParaView >= 5.12 open directly; cell arrays \
      (nz, ny, nx[, components]) with `units`, origin = lower grid corner; chunked and deflated \
      (option `compression`)",
-    write_vtkhdf,
     options: vec![compression_option()],
     check: check_compression,
-    write_with: write_vtkhdf_options
+    write: write_vtkhdf_options
 );
 
 fn write_vtkhdf_options(

@@ -113,7 +113,7 @@ fn lammps_data_of_spheres_reads_back_exactly() {
     let f = d.path().join("bed.data");
     let p = sphere_packing();
     LammpsDataExporter
-        .write(&Artifact::Packing(p.clone()), &f, &Provenance::default())
+        .write_defaults(&Artifact::Packing(p.clone()), &f, &Provenance::default())
         .unwrap();
     let (bounds, atoms, style) = parse_lammps_data(&std::fs::read_to_string(&f).unwrap());
     assert_eq!(style, "sphere");
@@ -140,7 +140,7 @@ fn lammps_data_of_clumps_keeps_bodies_as_molecules_and_mass() {
     let mut o = ExportOptions::new();
     o.insert("density".into(), serde_json::json!(1000.0));
     LammpsDataExporter
-        .write_with(
+        .write(
             &Artifact::Packing(p.clone()),
             &f,
             &Provenance::default(),
@@ -176,7 +176,7 @@ fn lammps_molecule_files_hold_body_frame_spheres_and_clump_mass() {
         source: "t".into(),
     };
     LammpsMoleculeExporter
-        .write(
+        .write_defaults(
             &Artifact::ClumpLibrary(lib.clone()),
             &f,
             &Provenance::default(),
@@ -236,7 +236,7 @@ fn yade_text_reads_back_exactly_with_clump_ids() {
     for p in [sphere_packing(), clump_packing()] {
         let f = d.path().join("bed.txt");
         YadeExporter
-            .write(&Artifact::Packing(p.clone()), &f, &Provenance::default())
+            .write_defaults(&Artifact::Packing(p.clone()), &f, &Provenance::default())
             .unwrap();
         let rows: Vec<Vec<f64>> = std::fs::read_to_string(&f)
             .unwrap()
@@ -283,7 +283,7 @@ fn raw_with_mhd_round_trips_through_import_raw() {
     };
     let f = d.path().join("img.mhd");
     RawExporter
-        .write(&Artifact::PhaseImage(img), &f, &Provenance::default())
+        .write_defaults(&Artifact::PhaseImage(img), &f, &Provenance::default())
         .unwrap();
     let h = parse_mhd(&std::fs::read_to_string(&f).unwrap());
     assert_eq!(h["DimSize"], "5 4 3");
@@ -322,7 +322,7 @@ fn raw_with_mhd_round_trips_through_import_raw() {
     let mut o = ExportOptions::new();
     o.insert("length_unit".into(), serde_json::json!("um"));
     RawExporter
-        .write_with(&Artifact::Field(field), &q, &Provenance::default(), &o)
+        .write(&Artifact::Field(field), &q, &Provenance::default(), &o)
         .unwrap();
     let h = parse_mhd(&std::fs::read_to_string(d.path().join("u.mhd")).unwrap());
     assert_eq!(h["ElementType"], "MET_DOUBLE");

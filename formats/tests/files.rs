@@ -327,13 +327,13 @@ fn exporters_declare_and_check_their_options() {
     let a = Artifact::PhaseImage(ball_image());
     let h5 = r.exporter_for(Some("h5"), Path::new("x")).unwrap();
     let (p0, p4) = (d.path().join("0.h5"), d.path().join("4.h5"));
-    h5.write_with(
+    h5.write(
         &a,
         &p0,
         &prov(),
         &opts(&[("compression", serde_json::json!(0))]),
     )
     .unwrap();
-    h5.write(&a, &p4, &prov()).unwrap();
+    h5.write_defaults(&a, &p4, &prov()).unwrap();
     assert!(size(&p0) >= 96 * 96 * 96 && size(&p4) * 10 <= size(&p0));
 }

@@ -155,6 +155,7 @@ fn graph() -> ContactGraph {
         .into_iter()
         .collect(),
         positions: vec![[0.0, 0.0, 0.0], [1e-4, 0.0, 0.0], [0.0, 1e-4, 2e-4]],
+        radii: vec![5e-5, 4e-5, 3e-5],
     }
 }
 
@@ -630,7 +631,7 @@ fn write_via_registry(a: &Artifact, p: &Path) -> Result<(), String> {
     register(&mut r);
     r.exporter_for(None, p)
         .expect("exporter")
-        .write(a, p, &prov())
+        .write_defaults(a, p, &prov())
 }
 
 #[test]

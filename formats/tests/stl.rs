@@ -50,7 +50,7 @@ fn packing_stl_encloses_the_sphere_volumes() {
     p.bodies.push(Body::sphere([7e-4, 6e-4, 5e-4], 5e-5));
     let f = d.path().join("bed.stl");
     StlExporter
-        .write(&Artifact::Packing(p.clone()), &f, &Provenance::default())
+        .write_defaults(&Artifact::Packing(p.clone()), &f, &Provenance::default())
         .unwrap();
     let tris = read_stl(&std::fs::read(&f).unwrap()).unwrap();
     assert_eq!(tris.len(), 2 * 320);
@@ -118,7 +118,7 @@ fn image_surface_is_watertight_and_encloses_the_phase_volume() {
     o.insert("phase".into(), serde_json::json!(2));
     o.insert("length_unit".into(), serde_json::json!("um"));
     StlExporter
-        .write_with(
+        .write(
             &Artifact::PhaseImage(img.clone()),
             &f,
             &Provenance::default(),
@@ -131,7 +131,7 @@ fn image_surface_is_watertight_and_encloses_the_phase_volume() {
     // A phase that is not in the image is an error naming the phases present.
     o.insert("phase".into(), serde_json::json!(7));
     let e = StlExporter
-        .write_with(&Artifact::PhaseImage(img), &f, &Provenance::default(), &o)
+        .write(&Artifact::PhaseImage(img), &f, &Provenance::default(), &o)
         .unwrap_err();
     assert!(e.contains("0 (pore), 2 (grain)"), "{e}");
 }

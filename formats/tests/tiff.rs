@@ -4,7 +4,7 @@
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{Inputs, RunContext, StageError, TypedStage};
 use grainpipe_formats::import::{ImportAs, ImportOptions, ImportTiff, Lengths3, TiffParams};
-use grainpipe_formats::tiff_io::{probe_tiff, read_tiff};
+use grainpipe_formats::tiff_io::{read_tiff, tiff_header};
 use std::path::Path;
 use tiff::encoder::{colortype, TiffEncoder};
 
@@ -29,7 +29,7 @@ fn multipage_tiff_reads_back_every_voxel() {
     let dir = tempfile::tempdir().unwrap();
     let f = dir.path().join("stack.tif");
     write_multipage(&f, [5, 4, 3]);
-    let probe = probe_tiff(&f).unwrap();
+    let probe = tiff_header(&f).unwrap().probe;
     assert_eq!(probe.dims, [5, 4, 3]);
     let params = TiffParams {
         path: f.to_str().unwrap().into(),

@@ -21,7 +21,8 @@ fn grid(dims: [usize; 3]) -> Grid {
         dims,
         spacing: [1.5e-6, 2.5e-6, 4e-6],
         origin: [-1e-4, 3e-5, 7.25e-3],
-        periodic: [false; 3],
+        // Mixed, so the round trips check each axis's flag.
+        periodic: [true, false, true],
     }
 }
 
@@ -64,12 +65,12 @@ fn import(path: &Path, extra: &str, port: &str) -> Artifact {
 }
 
 #[test]
-fn multipage_file_round_trips_labels_spacing_origin_and_phases() {
+fn multipage_file_round_trips_labels_spacing_origin_periodic_axes_and_phases() {
     let d = tempfile::tempdir().unwrap();
     let p = d.path().join("bed.tif");
     let img = image([5, 4, 3]);
     TiffExporter
-        .write(
+        .write_defaults(
             &Artifact::PhaseImage(img.clone()),
             &p,
             &Provenance::default(),
@@ -141,7 +142,7 @@ fn float_field_round_trips_bit_for_bit_and_multi_component_fields_are_refused() 
         data: FieldData::F32(values.clone()),
     };
     TiffExporter
-        .write(&Artifact::Field(f), &p, &Provenance::default())
+        .write_defaults(&Artifact::Field(f), &p, &Provenance::default())
         .unwrap();
     let back = import(&p, ", as: field", "field");
     let back = back.as_field().unwrap();
@@ -161,7 +162,7 @@ fn float_field_round_trips_bit_for_bit_and_multi_component_fields_are_refused() 
     };
     let q = d.path().join("u.tif");
     let e = TiffExporter
-        .write(&Artifact::Field(vec3), &q, &Provenance::default())
+        .write_defaults(&Artifact::Field(vec3), &q, &Provenance::default())
         .unwrap_err();
     assert!(e.contains("3 components") && e.contains(".vti"), "{e}");
     assert!(!q.exists());
@@ -175,7 +176,7 @@ fn imagej_calibration_is_in_the_tags() {
     let p = d.path().join("bed.tif");
     let img = image([5, 4, 3]);
     TiffExporter
-        .write(&Artifact::PhaseImage(img), &p, &Provenance::default())
+        .write_defaults(&Artifact::PhaseImage(img), &p, &Provenance::default())
         .unwrap();
     let mut dec = Decoder::new(std::fs::File::open(&p).unwrap()).unwrap();
     let desc = dec.get_tag_ascii_string(Tag::ImageDescription).unwrap();

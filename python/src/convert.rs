@@ -214,6 +214,10 @@ pub fn artifact<'py>(py: Python<'py>, a: Artifact) -> PyResult<Bound<'py, PyDict
             let np = g.positions.len();
             let pos: Vec<f64> = g.positions.into_iter().flatten().collect();
             d.set_item("positions", array(py, pos, &[np, 3])?)?;
+            if !g.radii.is_empty() {
+                let nr = g.radii.len();
+                d.set_item("radius", array(py, g.radii, &[nr])?)?;
+            }
         }
         Artifact::Table(t) => {
             d.set_item("name", t.name)?;

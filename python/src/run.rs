@@ -231,54 +231,18 @@ fn event_dict<'py>(py: Python<'py>, e: Event, count: usize) -> PyResult<Bound<'p
     Ok(d)
 }
 
-/// Provenance of a step's outputs, the entries the exporters write into files: the same
-/// keys and values as the engine's (private to it), except the timings, which are not a
-/// property of the result. tests/python compares them with an exported file's.
+/// Provenance of a step's outputs: the entries the exporters write into files, except the
+/// timings, which are not a property of the result. tests/python compares them with an
+/// exported file's.
 fn provenance<'py>(
     py: Python<'py>,
     doc: &PipelineDoc,
     plan: &Plan,
     step: &PlannedStep,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let info = step.stage.info();
     let d = PyDict::new(py);
-    d.set_item("grainpipe_version", grainpipe_core::VERSION)?;
-    d.set_item("pipeline_file", doc.file.display().to_string())?;
-    d.set_item("pipeline_name", &doc.name)?;
-    d.set_item("seed", plan.seed.to_string())?;
-    d.set_item("step", &step.id)?;
-    d.set_item("stage", format!("{} {}", info.id, info.version))?;
-    d.set_item("stage_origin", &step.origin)?;
-    d.set_item("stage_seed", step.seed.to_string())?;
-    d.set_item("params", step.params.to_string())?;
-    d.set_item("cache_key", &step.cache_key)?;
-    if !step.input_files.is_empty() {
-        let files: Vec<String> = step
-            .input_files
-            .iter()
-            .map(|(p, h)| format!("{p}={h}"))
-            .collect();
-        d.set_item("input_files_blake3", files.join(", "))?;
-    }
-    // As the engine: the file as written when nothing was overridden, else what ran.
-    if doc.overrides.is_empty() && doc.seed == doc.file_seed {
-        d.set_item("pipeline_yaml", &doc.source)?;
-    } else {
-        d.set_item("pipeline_yaml", doc.effective_yaml())?;
-        if !doc.overrides.is_empty() {
-            let sets: Vec<String> = doc
-                .overrides
-                .iter()
-                .map(|o| format!("--set {}", o.text))
-                .collect();
-            d.set_item("overrides", sets.join("\n"))?;
-        }
-        if doc.seed != doc.file_seed {
-            d.set_item(
-                "seed_override",
-                format!("--seed {} (the file says {})", doc.seed, doc.file_seed),
-            )?;
-        }
+    for (key, value) in engine::result_provenance(doc, plan, step).entries {
+        d.set_item(key, value)?;
     }
     Ok(d)
 }

@@ -86,6 +86,7 @@ impl Exporter for HtmlExporter {
         artifact: &Artifact,
         path: &Path,
         provenance: &Provenance,
+        _options: &grainpipe_core::registry::ExportOptions,
     ) -> Result<(), String> {
         let source = provenance
             .entries

@@ -439,7 +439,8 @@ fn sweep_report_and_html_export_in_a_browser() {
         .insert("pipeline_yaml".into(), "name: t\n".into());
     let exp = grainpipe_report::export::HtmlExporter;
     let html_path = tmp.path().join("image.html");
-    grainpipe_core::Exporter::write(&exp, &Artifact::PhaseImage(img), &html_path, &prov).unwrap();
+    grainpipe_core::Exporter::write_defaults(&exp, &Artifact::PhaseImage(img), &html_path, &prov)
+        .unwrap();
     if skip() {
         return;
     }

@@ -141,6 +141,7 @@ impl grainpipe_core::Exporter for ProvenanceJson {
         _: &Artifact,
         path: &Path,
         provenance: &grainpipe_core::Provenance,
+        _options: &grainpipe_core::registry::ExportOptions,
     ) -> Result<(), String> {
         let v = serde_json::to_vec(&provenance.entries).map_err(|e| e.to_string())?;
         grainpipe_core::fsutil::atomic_write_bytes(path, &v)

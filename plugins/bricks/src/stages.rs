@@ -462,6 +462,7 @@ fn finish(
         bonds: Vec::new(),
         bond_attributes: Default::default(),
         positions: asm.pos.clone(),
+        radii: asm.rad.clone(),
     };
     let face_min = (0..6)
         .filter(|&k| st.filled[k])

@@ -64,6 +64,11 @@ fn gap(a: &([f64; 3], f64), b: &([f64; 3], f64)) -> f64 {
 /// the recorded gap and is within the contact distance, and no touching pair is missing.
 fn check_pairs(p: &Packing, g: &ContactGraph, rmean: f64, contact_parameter: f64) {
     let s = spheres(p);
+    // The graph carries each sphere's own centre and radius, so it can be glyphed alone.
+    assert_eq!(g.positions.len(), s.len());
+    for (k, (c, r)) in s.iter().enumerate() {
+        assert_eq!((g.positions[k], g.radii[k]), (*c, *r), "body {k}");
+    }
     let max_gap = contact_parameter * rmean;
     let mut expected = 0usize;
     for i in 0..s.len() {

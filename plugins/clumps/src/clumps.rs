@@ -584,7 +584,13 @@ impl Exporter for ClumpJsonExporter {
         "JSON clump library: per clump its spheres (offset from the centroid, radius), volume, \
          bounding radius, principal inertia per unit density and axes [SI]"
     }
-    fn write(&self, a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    fn write(
+        &self,
+        a: &Artifact,
+        path: &Path,
+        prov: &Provenance,
+        _options: &grainpipe_core::registry::ExportOptions,
+    ) -> Result<(), String> {
         let Artifact::ClumpLibrary(l) = a else {
             return Err(format!(
                 "clump_json takes a ClumpLibrary, not a {}",

@@ -264,7 +264,7 @@ fn main() {
     if let Some(path) = png {
         use grainpipe_core::Exporter;
         grainpipe_sintering::BondGraphPng
-            .write(
+            .write_defaults(
                 &grainpipe_core::Artifact::ContactGraph(def.bonds.clone()),
                 std::path::Path::new(&path),
                 &Default::default(),

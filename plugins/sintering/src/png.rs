@@ -350,6 +350,7 @@ impl Exporter for BondGraphPng {
         artifact: &Artifact,
         path: &Path,
         provenance: &Provenance,
+        _options: &grainpipe_core::registry::ExportOptions,
     ) -> Result<(), String> {
         let g = artifact
             .as_contact_graph()

@@ -746,6 +746,7 @@ fn results(
             .into_iter()
             .collect(),
         positions: bed.pos.clone(),
+        radii: bed.radius.clone(),
     };
     let peak = bed.peak.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
     ctx.info(&format!(

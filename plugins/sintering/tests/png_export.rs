@@ -18,13 +18,14 @@ fn top_view_png_shows_bonds_and_particles() {
         contacts: vec![c(0, 1), c(0, 2), c(1, 3), c(2, 3)],
         bonds: vec![[0, 1]],
         positions: pos,
+        radii: Vec::new(),
         ..Default::default()
     };
     let ex = BondGraphPng;
     assert!(ex.accepts(ArtifactKind::ContactGraph) && !ex.accepts(ArtifactKind::Packing));
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("bonds.png");
-    ex.write(&Artifact::ContactGraph(g), &path, &Provenance::default())
+    ex.write_defaults(&Artifact::ContactGraph(g), &path, &Provenance::default())
         .unwrap();
     let img = image::open(&path).unwrap().to_rgb8();
     // Square extent: 1600 px with 20 px margins -> 1560 px for 100 um, and the legend band.
@@ -47,7 +48,7 @@ fn top_view_png_shows_bonds_and_particles() {
     // Anything but a contact graph is refused.
     let t = Artifact::Table(Default::default());
     assert!(ex
-        .write(&t, &dir.path().join("x.png"), &Provenance::default())
+        .write_defaults(&t, &dir.path().join("x.png"), &Provenance::default())
         .is_err());
 }
 
@@ -61,6 +62,7 @@ fn png_carries_the_provenance_as_text_chunks() {
             gap: 0.0,
         }],
         positions: vec![[0.0; 3], [1e-4, 0.0, 0.0]],
+        radii: Vec::new(),
         ..Default::default()
     };
     let mut prov = Provenance::default();
@@ -70,7 +72,7 @@ fn png_carries_the_provenance_as_text_chunks() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("b.png");
     BondGraphPng
-        .write(&Artifact::ContactGraph(g), &path, &prov)
+        .write_defaults(&Artifact::ContactGraph(g), &path, &prov)
         .unwrap();
     let dec = png::Decoder::new(std::fs::File::open(&path).unwrap());
     let reader = dec.read_info().unwrap();
@@ -98,6 +100,7 @@ fn square() -> ContactGraph {
             [0.0, 100e-6, 5e-6],
             [100e-6, 100e-6, 0.0],
         ],
+        radii: Vec::new(),
         ..Default::default()
     }
 }
@@ -118,7 +121,7 @@ fn scale_bar_is_its_length_over_the_pixel_size() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("bar.png");
     BondGraphPng
-        .write(&Artifact::ContactGraph(g), &path, &Provenance::default())
+        .write_defaults(&Artifact::ContactGraph(g), &path, &Provenance::default())
         .unwrap();
     let img = image::open(&path).unwrap().to_rgb8();
     let y = bar.y as u32;
@@ -152,7 +155,7 @@ fn powderbed_bond_graph_png_is_small_and_indexed() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("bonds_top.png");
     BondGraphPng
-        .write(
+        .write_defaults(
             &Artifact::ContactGraph(bonds),
             &path,
             &Provenance::default(),

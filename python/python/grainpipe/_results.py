@@ -268,10 +268,12 @@ class ClumpLibrary(Artifact):
 
 class ContactGraph(Artifact):
     """Contacts (pairs of body indices, gaps [m], negative for overlap), bonds, the bodies on
-    each domain face and the body positions."""
+    each domain face, the body positions and, for spheres, their radii [m] (`radius`, None for
+    other bodies)."""
 
     def __init__(self, data: dict, provenance: Optional[dict] = None):
         super().__init__(data, provenance)
+        self.radius = data.get("radius")
         self.contacts = data["contacts"]
         self.gaps = data["gaps"]
         self.bonds = data["bonds"]
@@ -280,13 +282,16 @@ class ContactGraph(Artifact):
         self.positions = data["positions"]
 
     def to_pyvista(self):
-        """A pyvista.PolyData with a line per contact between body centres (cell data `gap`)."""
+        """A pyvista.PolyData with a line per contact between body centres (cell data `gap`;
+        point data `radius` for spheres, for glyphing)."""
         import pyvista as pv
 
         n = len(self.contacts)
         lines = np.column_stack([np.full(n, 2), self.contacts]).astype(np.int64).ravel()
         poly = pv.PolyData(np.ascontiguousarray(self.positions), lines=lines)
         poly.cell_data["gap"] = self.gaps
+        if self.radius is not None:
+            poly.point_data["radius"] = self.radius
         return poly
 
 
