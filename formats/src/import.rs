@@ -629,8 +629,7 @@ impl TypedStage for ImportTiff {
         if !path.is_dir() {
             check_path(&p.path)?;
         }
-        let header =
-            crate::tiff_io::tiff_header(path).map_err(|e| StageError::param("path", e))?;
+        let header = crate::tiff_io::tiff_header(path).map_err(|e| StageError::param("path", e))?;
         if p.spacing.is_none() && header.probe.spacing.is_none() {
             return Err(StageError::param(
                 "spacing",

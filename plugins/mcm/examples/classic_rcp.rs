@@ -5,7 +5,8 @@
 //!     [SEED=1] [OUT.csv]
 //!   LAW: `fixed` (equal spheres, radius 1 mm) or `weibull` (scale 1 mm, shape 3.55, the
 //!   shape of the sand's Weibull fit in the project's examples). Env MCM_TOL overrides the
-//!   stage's `tolerance`, MCM_RESTARTS its `restarts`.
+//!   stage's `tolerance`, MCM_RESTARTS its `restarts`, MCM_PARAMS (a JSON object) any
+//!   other parameter.
 //! Prints one line: phi, wall time of the stage [s], iterations, contraction steps, tries;
 //! writes the packing as CSV (`x,y,z,r` in metres, first line `# box L`) to OUT.csv when given,
 //! for an independent overlap check.
@@ -35,6 +36,13 @@ fn main() {
     }
     if let Ok(r) = std::env::var("MCM_RESTARTS") {
         params["restarts"] = json!(r.parse::<usize>().expect("MCM_RESTARTS"));
+    }
+    // Any other stage parameter as a JSON object, e.g. MCM_PARAMS='{"anneal_steps": 0}'.
+    if let Ok(extra) = std::env::var("MCM_PARAMS") {
+        let extra: serde_json::Value = serde_json::from_str(&extra).expect("MCM_PARAMS");
+        for (k, v) in extra.as_object().expect("MCM_PARAMS: a JSON object") {
+            params[k] = v.clone();
+        }
     }
     let p: ClassicParams = serde_json::from_value(params).unwrap();
     let t0 = Instant::now();

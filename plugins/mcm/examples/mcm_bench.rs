@@ -13,7 +13,7 @@
 //! contraction steps and beta; MCM_PERIODIC_Z=0 gives a free surface above each new layer;
 //! MCM_ENERGY (all_pairs | max_pair) and MCM_MINIMISER (fire | gradient_descent) pick the
 //! overlap energy and the minimiser; MCM_SHAKE=0 turns jam shaking off; MCM_SEED0 is the
-//! first seed.
+//! first seed; MCM_PARAMS (a JSON object) sets any other stage parameter.
 
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{
@@ -129,7 +129,7 @@ fn main() {
         let mut restarts = 0;
         let seed0 = env("MCM_SEED0", 0.0) as u64;
         for seed in seed0..seed0 + seeds {
-            let p: StackedParams = serde_json::from_value(json!({
+            let mut params = json!({
                 "layers": layers, "layer_size": [size * 1e-6, size * 1e-6],
                 "layer_thickness": 280e-6, "volume_fraction": env("MCM_PHI", 0.5), "min_gap": env("MCM_GAP", 8e-6),
                 "radius": {"kind": "lognormal", "median": "70 um", "sigma": 0.2, "min": "40 um", "max": "120 um"},
@@ -141,8 +141,15 @@ fn main() {
                 "energy": env_str("MCM_ENERGY", "all_pairs"),
                 "minimiser": env_str("MCM_MINIMISER", "fire"),
                 "shake": env("MCM_SHAKE", 1.0) != 0.0,
-            }))
-            .unwrap();
+            });
+            // Any other stage parameter as a JSON object, e.g. MCM_PARAMS='{"anneal_steps": 0}'.
+            if let Ok(extra) = std::env::var("MCM_PARAMS") {
+                let extra: serde_json::Value = serde_json::from_str(&extra).expect("MCM_PARAMS");
+                for (k, v) in extra.as_object().expect("MCM_PARAMS: a JSON object") {
+                    params[k] = v.clone();
+                }
+            }
+            let p: StackedParams = serde_json::from_value(params).unwrap();
             let mut inputs = Inputs::new();
             let mut metas = InputMetas::new();
             if let Some(l) = &lib {

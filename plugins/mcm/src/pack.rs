@@ -176,6 +176,12 @@ pub struct Schedule {
     /// Convergence threshold of the phases before the final size, as a multiple (>= 1) of
     /// the final tolerance `System::tol`.
     pub loose: f64,
+    /// Thermalisation of a stuck contraction step (`System::anneal`): Langevin steps per
+    /// cycle (0: off), starting thermal amplitude sqrt(T) in mean bounding radii of the
+    /// mobile grains, cycles per stuck step.
+    pub anneal_steps: usize,
+    pub anneal_amplitude: f64,
+    pub anneal_cycles: usize,
 }
 
 /// Convergence threshold of intermediate phases, in mean bounding radii. An intermediate
@@ -210,6 +216,10 @@ pub enum Outcome {
     Shaken,
     /// A shake whose relaxation did not converge: undone.
     ShakeFailed,
+    /// A stuck step thermalised at its size, then relaxed to convergence: kept.
+    Annealed,
+    /// A thermalisation cycle whose relaxation did not converge.
+    AnnealFailed,
 }
 
 impl Outcome {
@@ -219,6 +229,8 @@ impl Outcome {
             Outcome::Stuck => "stuck",
             Outcome::Shaken => "shaken",
             Outcome::ShakeFailed => "shake_failed",
+            Outcome::Annealed => "annealed",
+            Outcome::AnnealFailed => "anneal_failed",
         }
     }
 }
@@ -467,6 +479,18 @@ fn contract_phases(
         return Err(fail(st, FailReason::InitialOverlap));
     }
     let mut rate = sch.rate0;
+    // Starting temperature of a thermalisation: thermal overlaps sqrt(T) of
+    // `anneal_amplitude` mean bounding radii of the mobile grains.
+    let temperature = {
+        let mobile: Vec<f64> = sys
+            .grains
+            .iter()
+            .filter(|g| !g.frozen)
+            .map(|g| sys.shapes[g.shape].bound)
+            .collect();
+        let bmean = mobile.iter().sum::<f64>() / mobile.len().max(1) as f64;
+        (sch.anneal_amplitude * bmean).powi(2)
+    };
     while s > 1.0 {
         if let Err(e) = progress((beta - s) / (beta - 1.0).max(1e-12)) {
             return Err(fail(st, FailReason::Cancelled(e)));
@@ -497,6 +521,36 @@ fn contract_phases(
             continue;
         }
         st.record(s_new, &m, Outcome::Stuck);
+        if st.iterations >= sch.max_iterations {
+            return Err(fail(st, limit(s_new)));
+        }
+        // A stuck step is a quench that jammed: thermalise it at its size and relax again
+        // (System::anneal) before giving the step up; each cycle counts its Langevin steps
+        // and its relaxation against the run's iteration limit.
+        let mut m = m;
+        for _ in 0..sch.anneal_cycles {
+            if sch.anneal_steps == 0 || st.iterations >= sch.max_iterations {
+                break;
+            }
+            let steps = sch
+                .anneal_steps
+                .min(sch.max_iterations.saturating_sub(st.iterations));
+            let took = sys.anneal(steps, temperature, rng);
+            let mut a = sys.minimise(budget(&st).saturating_sub(took));
+            a.iterations += took;
+            if a.converged {
+                st.record(s_new, &a, Outcome::Annealed);
+                break;
+            }
+            st.record(s_new, &a, Outcome::AnnealFailed);
+            m = a;
+        }
+        if st.history.last().map(|h| h.outcome) == Some(Outcome::Annealed) {
+            s = s_new;
+            st.steps += 1;
+            rate = (rate * 0.5).max(sch.rate_min);
+            continue;
+        }
         if st.iterations >= sch.max_iterations {
             return Err(fail(st, limit(s_new)));
         }

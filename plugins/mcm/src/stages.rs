@@ -92,6 +92,22 @@ pub struct ClassicParams {
     /// Linear enlargement of the initial cell (eq. 2.2).
     #[param(default = 2.0)]
     pub beta: f64,
+    /// Thermalisation of a stuck contraction step before it is undone: Langevin dynamics on
+    /// the overlap energy at the step's size for this many steps (0: off), the temperature
+    /// falling to zero, then overlap removal; lets a jammed quench rearrange into a denser,
+    /// overlap-free packing (random close packing of spheres needs it). Counted in
+    /// max_iterations.
+    // 2000 steps at 0.05 reach 0.64 with equal spheres in the fewest iterations among
+    // 500-3000 steps and 0.02-0.12 (BENCHMARKS.md, classic MCM towards random close packing).
+    #[param(default = 2000)]
+    pub anneal_steps: usize,
+    /// Starting thermal amplitude of a thermalisation: the square root of the temperature,
+    /// i.e. the typical thermal overlap, in mean bounding radii.
+    #[param(default = 0.05)]
+    pub anneal_amplitude: f64,
+    /// Thermalisation cycles per stuck contraction step before it is undone (and shaken).
+    #[param(default = 2)]
+    pub anneal_cycles: usize,
 }
 
 #[params]
@@ -119,6 +135,23 @@ pub struct StackedParams {
     /// packing periodic in x, y only (fewer jams, faster; BENCHMARKS.md#mcm).
     #[param(default = true)]
     pub periodic_z: bool,
+    /// Thermalisation of a stuck contraction step before it is undone: Langevin dynamics on
+    /// the overlap energy at the step's size for this many steps (0: off), the temperature
+    /// falling to zero, then overlap removal; lets a jammed quench rearrange into a denser,
+    /// overlap-free packing (random close packing of spheres needs it). Counted in
+    /// max_iterations.
+    // Off by default here: on clumps of ~200 spheres a Langevin step costs as much as a
+    // minimiser step, and the sand's stuck steps are freed faster by the shake
+    // (BENCHMARKS.md, robustness on harder grain families).
+    #[param(default = 0)]
+    pub anneal_steps: usize,
+    /// Starting thermal amplitude of a thermalisation: the square root of the temperature,
+    /// i.e. the typical thermal overlap, in mean bounding radii.
+    #[param(default = 0.05)]
+    pub anneal_amplitude: f64,
+    /// Thermalisation cycles per stuck contraction step before it is undone (and shaken).
+    #[param(default = 2)]
+    pub anneal_cycles: usize,
 }
 
 impl ContractionParams {
@@ -179,7 +212,7 @@ impl ContractionParams {
     }
 
     /// The contraction schedule from `beta` down to 1.
-    fn schedule(&self, beta: f64) -> Schedule {
+    fn schedule(&self, beta: f64, anneal: (usize, f64, usize)) -> Schedule {
         let rate0 = beta.powf(1.0 / self.contraction_steps as f64) - 1.0;
         Schedule {
             rate0,
@@ -189,8 +222,23 @@ impl ContractionParams {
             max_iterations: self.max_iterations,
             shake: self.shake,
             loose: crate::pack::LOOSE_TOLERANCE / self.tolerance,
+            anneal_steps: anneal.0,
+            anneal_amplitude: anneal.1,
+            anneal_cycles: anneal.2,
         }
     }
+}
+
+/// The thermalisation's amplitude: a fraction of a bounding radius (larger kicks would only
+/// re-expand the packing they are meant to rearrange).
+fn check_anneal(amp: f64) -> Result<(), StageError> {
+    if !(amp.is_finite() && (0.0..=0.5).contains(&amp)) {
+        return Err(StageError::param(
+            "anneal_amplitude",
+            format!("must be in [0, 0.5] mean bounding radii, got {amp}"),
+        ));
+    }
+    Ok(())
 }
 
 /// Remark 1: draw grains (Remark 2) until their volume exceeds `target`, then the linear
@@ -759,6 +807,7 @@ impl TypedStage for Classic {
     ) -> Result<Preflight<ClassicPlan>, StageError> {
         let c = &p.contraction;
         c.check(p.beta, p.min_gap.si())?;
+        check_anneal(p.anneal_amplitude)?;
         let sized = p.size.iter().all(|l| l.si() > 0.0);
         if !sized && p.size.iter().any(|l| l.si() != 0.0) {
             return Err(StageError::param(
@@ -802,7 +851,10 @@ impl TypedStage for Classic {
             }
         }
         let plan = ClassicPlan {
-            schedule: c.schedule(p.beta),
+            schedule: c.schedule(
+                p.beta,
+                (p.anneal_steps, p.anneal_amplitude, p.anneal_cycles),
+            ),
             size,
         };
         Ok(announce(
@@ -926,6 +978,7 @@ impl TypedStage for Stacked {
     ) -> Result<Preflight<Schedule>, StageError> {
         let c = &p.contraction;
         c.check(p.beta, p.min_gap.si())?;
+        check_anneal(p.anneal_amplitude)?;
         if !(1..=1000).contains(&p.layers) {
             return Err(StageError::param(
                 "layers",
@@ -974,7 +1027,10 @@ impl TypedStage for Stacked {
             grains.with_scale(packing),
             layers,
             c,
-            c.schedule(p.beta),
+            c.schedule(
+                p.beta,
+                (p.anneal_steps, p.anneal_amplitude, p.anneal_cycles),
+            ),
         ))
     }
     fn run(

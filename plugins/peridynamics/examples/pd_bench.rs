@@ -3,14 +3,15 @@
 //! quasi-static state (CG, and ADR for comparison) on a synthetic cemented bidisperse sample.
 //!
 //! cargo build --release -p grainpipe-peridynamics --example pd_bench
-//! target/release/examples/pd_bench [n] [adr_iterations] [out_dir]
+//! target/release/examples/pd_bench [n] [adr_iterations] [out_dir] [multigrid|jacobi|both]
 
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{Grid, Phase, PhaseImage, RunContext};
 use grainpipe_peridynamics::bond_based::{
-    resolve_phases, solve_image, BondBasedParams, SolverKind,
+    resolve_phases, solve_image, BondBasedParams, PreconditionerKind, SolverKind,
 };
 use grainpipe_peridynamics::lattice::ForceLaw;
+use grainpipe_peridynamics::multigrid::{MgOptions, Multigrid};
 use grainpipe_peridynamics::setup::{build, Grips, Identity, PhaseSpec, Role, Setup};
 use std::io::Write;
 use std::time::Instant;
@@ -168,11 +169,81 @@ fn main() {
         );
     }
 
+    // Multigrid set-up and one V-cycle, timed apart from the solve.
+    let t = Instant::now();
+    let mg = Multigrid::new(lat, MgOptions::default());
+    let t_setup = t.elapsed().as_secs_f64();
+    let mut z = grainpipe_peridynamics::lattice::Vec3::zeros(&lat.layout);
+    lat.forces(&b.u0, ForceLaw::Linear, &mut f, None, true);
+    grainpipe_peridynamics::lattice::mask_fixed(lat, &mut f);
+    let t = Instant::now();
+    let reps = 5;
+    for _ in 0..reps {
+        mg.apply(lat, &f, &mut z);
+    }
+    println!(
+        "multigrid: {} grids, set-up {:.2} s, {:.1} ms per V-cycle",
+        mg.depth(),
+        t_setup,
+        1e3 * t.elapsed().as_secs_f64() / reps as f64
+    );
+    drop(mg);
+    if std::env::var("PD_MG_SCAN").is_ok() {
+        for (fs, cs, oc, cy) in [
+            (1, 2, 1.5f32, 1),
+            (1, 2, 1.5, 2),
+            (1, 2, 1.0, 2),
+            (1, 1, 1.5, 2),
+        ] {
+            let o = MgOptions {
+                fine_sweeps: fs,
+                coarse_sweeps: cs,
+                overcorrection: oc,
+                cycle: cy,
+            };
+            let mut u = b.u0.clone();
+            let s = grainpipe_peridynamics::solve::Settings {
+                tolerance: 1e-5,
+                max_iterations: 2000,
+                stagnation_window: 2000,
+            };
+            let t = Instant::now();
+            let r = grainpipe_peridynamics::solve::cg(
+                lat,
+                &mut u,
+                &s,
+                grainpipe_peridynamics::solve::Precond::Multigrid(o),
+                &mut |_, _| true,
+            );
+            println!(
+                "scan fine {fs} coarse {cs} over {oc} cycle {cy}: {:?} its, {:.2} s",
+                r.map(|x| x.iterations),
+                t.elapsed().as_secs_f64()
+            );
+        }
+    }
+
     let rep = SilentReporter;
     let ctx = RunContext::new(1, &rep);
-    for (solver, its) in [(SolverKind::Cg, 20000), (SolverKind::Adr, adr_its)] {
+    // CG with each preconditioner (the 4th argument picks one: multigrid | jacobi | both),
+    // then ADR (skipped with adr_iterations = 0).
+    let which = args.get(4).cloned().unwrap_or_else(|| "both".into());
+    let mut runs = Vec::new();
+    for (name, pc) in [
+        ("multigrid", PreconditionerKind::Multigrid),
+        ("jacobi", PreconditionerKind::Jacobi),
+    ] {
+        if which == "both" || which == name {
+            runs.push((SolverKind::Cg, pc, 20000));
+        }
+    }
+    if adr_its > 0 {
+        runs.push((SolverKind::Adr, PreconditionerKind::Jacobi, adr_its));
+    }
+    for (solver, preconditioner, its) in runs {
         let p = BondBasedParams {
             solver,
+            preconditioner,
             max_iterations: its,
             stagnation_window: its,
             ..Default::default()
@@ -182,14 +253,15 @@ fn main() {
             Ok(r) => {
                 let it = r.stats.iterations;
                 println!(
-                    "{solver:?}: converged to {:.2e} in {it} iterations, {:.2} s (stage run: \
+                    "{solver:?} ({preconditioner:?}): converged to {:.2e} in {it} iterations, {:.2} s (stage run: \
                      set-up, solve, stress); E_eff = {:.4e} Pa",
                     r.stats.residual,
                     t.elapsed().as_secs_f64(),
                     r.report.f64_column("effective_modulus").unwrap()[0]
                 );
                 if let Some(dir) = &out {
-                    let path = format!("{dir}/history_{solver:?}.csv").to_lowercase();
+                    let path =
+                        format!("{dir}/history_{solver:?}_{preconditioner:?}.csv").to_lowercase();
                     let mut w = std::fs::File::create(&path).unwrap();
                     writeln!(w, "iteration,residual").unwrap();
                     let h = &r.stats.history;

@@ -128,6 +128,10 @@ impl Layout {
         }
         Some(row * self.pdims[0] + self.pad[0])
     }
+    /// Padded start of the first unpadded node of padded row `row`, None for padding rows.
+    pub fn row_start_pub(&self, row: usize) -> Option<usize> {
+        self.row_start(row)
+    }
     /// Number of padded rows.
     pub fn rows(&self) -> usize {
         self.pdims[1] * self.pdims[2]
@@ -215,6 +219,16 @@ fn bond_k(ri: u32, rj: u32, ki: f32, kint: f32) -> f32 {
     } else {
         k
     }
+}
+
+/// Bond constant of the bond from padded node i to padded node j (0 when either has no
+/// material), as the force sweeps use it.
+#[inline(always)]
+pub fn bond_k_pub(lat: &Lattice, i: usize, j: usize) -> f32 {
+    if lat.region[i] == 0 {
+        return 0.0;
+    }
+    bond_k(lat.region[i], lat.region[j], lat.kself[i], lat.kint)
 }
 
 /// Slices of a row shifted by a stencil offset (the neighbour j of node i = start + x).

@@ -10,6 +10,7 @@
 
 pub mod bond_based;
 pub mod lattice;
+pub mod multigrid;
 pub mod setup;
 pub mod solve;
 pub mod stress_stats;

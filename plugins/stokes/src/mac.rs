@@ -355,13 +355,14 @@ impl Stokes<'_> {
         .sum::<f64>()
     }
 
-    /// out <- K v - b * out, returning <K v, v> (reduced slab by slab in a fixed order): the
-    /// first half of the Lanczos recurrence, without a K v buffer and with one operator
-    /// application per iteration.
-    pub fn apply_shift_quad(&self, v: &[f32], out: &mut [f32], b: f64) -> f64 {
+    /// out <- K (s v) - b * out, returning <K (s v), s v> (reduced slab by slab in a fixed
+    /// order): the first half of the Lanczos recurrence, without a K v buffer, with one
+    /// operator application per iteration and the scaling of v folded in.
+    pub fn apply_shift_quad(&self, v: &[f32], out: &mut [f32], b: f64, s: f64) -> f64 {
         let slab = self.dims.slab();
         let nz = self.dims.n[2];
         let b = b as f32;
+        let sf = s as f32;
         out.par_chunks_mut(slab)
             .enumerate()
             .map(|(item, o)| {
@@ -385,14 +386,15 @@ impl Stokes<'_> {
                         let nb = [row + xm, row + xp, rym + x, ryp + x, rzm + x, rzp + x];
                         let kv = self.row_at(v, block, row + x, &nb);
                         q += kv as f64 * v[item * slab + l] as f64;
-                        o[l] = kv - b * o[l];
+                        o[l] = sf * kv - b * o[l];
                     }
                 }
                 q
             })
             .collect::<Vec<f64>>()
             .iter()
-            .sum()
+            .sum::<f64>()
+            * (s * s)
     }
 
     /// ||b - K v||^2 split into (velocity rows, pressure rows) for the unit body force along

@@ -44,12 +44,6 @@ impl std::fmt::Display for MinresError {
     }
 }
 
-fn scale(v: &mut [f32], s: f64) {
-    let s = s as f32;
-    v.par_chunks_mut(CHUNK)
-        .for_each(|c| c.iter_mut().for_each(|x| *x *= s));
-}
-
 /// Solves K x = b from x = 0, taking `b` over as the first Lanczos vector (so the right-hand
 /// side costs no extra vector). `precond(v, z)` applies the SPD preconditioner z = P^{-1} v;
 /// `monitor(iteration, relative residual)` may stop the solve by returning an error.
@@ -97,11 +91,29 @@ where
     let (mut c_prev, mut c) = (1.0f64, 1.0f64);
     let mut history = Vec::new();
     let mut rel = 1.0;
+    // The search directions are stored unnormalised, w_j = a1_j * (true w_j), and the solution
+    // update x += c eta w_j of iteration j is applied in iteration j + 1's pass over w (it reads
+    // w_j anyway): one pass over x, w_{j-1}, w_j and z per iteration instead of two (the
+    // normalisation of w alone wrote a whole vector). `pending` is c eta / a1 of the update
+    // still owed to x; `a1_cur`, `a1_prev` the normalisations of w_cur, w_prev.
+    let mut pending = 0.0f64;
+    let (mut a1_cur, mut a1_prev) = (1.0f64, 1.0f64);
+    let flush = |x: &mut [f32], w: &[f32], coef: f64| {
+        let coef = coef as f32;
+        x.par_chunks_mut(CHUNK)
+            .zip(w.par_chunks(CHUNK))
+            .for_each(|(xx, ww)| {
+                for k in 0..xx.len() {
+                    xx[k] += coef * ww[k];
+                }
+            });
+    };
     for it in 1..=max_iterations {
-        scale(&mut z, 1.0 / gamma);
+        // z_j = P^{-1} v_j / gamma_j: the 1/gamma is folded into the two passes that read z.
+        let zs = 1.0 / gamma;
         // v_{j+1} = K z_j - (delta / gamma_j) v_j - (gamma_j / gamma_{j-1}) v_{j-1}, with
         // delta = <K z_j, z_j> accumulated while K z_j is formed.
-        let delta = op.apply_shift_quad(&z, &mut v_prev, gamma / gamma_prev);
+        let delta = op.apply_shift_quad(&z, &mut v_prev, gamma / gamma_prev, zs);
         {
             let a = (delta / gamma) as f32;
             v_prev
@@ -117,16 +129,24 @@ where
         let a0 = c * delta - c_prev * s * gamma;
         let a2 = s * delta + c_prev * c * gamma;
         let a3 = s_prev * gamma;
-        // Unnormalized w_{j+1} = z_j - a3 w_{j-1} - a2 w_j, written over w_{j-1}.
+        // w_{j+1} = z_j - a3 w_{j-1} - a2 w_j (true directions), written over w_{j-1}, with
+        // the owed x += pending * w_j on the way.
         {
-            let (a2, a3) = (a2 as f32, a3 as f32);
+            let (zs, a2, a3, px) = (
+                zs as f32,
+                (a2 / a1_cur) as f32,
+                (a3 / a1_prev) as f32,
+                pending as f32,
+            );
             w_prev
                 .par_chunks_mut(CHUNK)
                 .zip(w_cur.par_chunks(CHUNK))
                 .zip(z.par_chunks(CHUNK))
-                .for_each(|((wp, wc), zz)| {
+                .zip(x.par_chunks_mut(CHUNK))
+                .for_each(|(((wp, wc), zz), xx)| {
                     for k in 0..wp.len() {
-                        wp[k] = zz[k] - a3 * wp[k] - a2 * wc[k];
+                        xx[k] += px * wc[k];
+                        wp[k] = zs * zz[k] - a3 * wp[k] - a2 * wc[k];
                     }
                 });
         }
@@ -146,18 +166,9 @@ where
         }
         let c_next = a0 / a1;
         let s_next = gamma_next / a1;
-        {
-            let inv = (1.0 / a1) as f32;
-            let step = (c_next * eta) as f32;
-            x.par_chunks_mut(CHUNK)
-                .zip(w_cur.par_chunks_mut(CHUNK))
-                .for_each(|(xx, ww)| {
-                    for k in 0..xx.len() {
-                        ww[k] *= inv;
-                        xx[k] += step * ww[k];
-                    }
-                });
-        }
+        a1_prev = a1_cur;
+        a1_cur = a1;
+        pending = c_next * eta / a1;
         eta *= -s_next;
         gamma_prev = gamma;
         gamma = gamma_next;
@@ -170,8 +181,12 @@ where
             return Ok(Err(MinresError::NotFinite { iteration: it }));
         }
         history.push((it, rel));
-        monitor(it, rel)?;
+        if let Err(e) = monitor(it, rel) {
+            flush(x, &w_cur, pending);
+            return Err(e);
+        }
         if rel <= tol || gamma == 0.0 {
+            flush(x, &w_cur, pending);
             return Ok(Ok(MinresResult {
                 iterations: it,
                 relative_residual: rel,
@@ -180,6 +195,7 @@ where
             }));
         }
     }
+    flush(x, &w_cur, pending);
     Ok(Ok(MinresResult {
         iterations: max_iterations,
         relative_residual: rel,

@@ -312,6 +312,99 @@ fn gs_colour<O: Op7>(op: &O, x: &mut [f32], rhs: &[f32], colour: usize, seam_fir
     }
 }
 
+/// Whether red-black colouring is consistent across the periodic wrap (no axis with an odd
+/// number > 1 of layers), so that a colour's neighbours all have the other colour.
+#[inline]
+fn no_seam(d: Dims) -> bool {
+    (0..3).all(|a| d.n[a] == 1 || d.n[a] % 2 == 0)
+}
+
+/// x <- 0 followed by the first colour-0 half-sweep, in one pass: from x = 0 the colour-0
+/// update reads only zeros, so it is x_i = rhs_i / A_ii (colour 1 stays 0). Saves the zeroing
+/// pass and the neighbour reads of the first half-sweep; the values are those of the
+/// two-pass form (seam points, whose same-colour neighbours are updated first, go through the
+/// sequential seam phase as before).
+fn first_half_sweep<O: Op7>(op: &O, x: &mut [f32], rhs: &[f32]) {
+    let d = op.dims();
+    let [nx, ny, nz] = d.n;
+    let odd = |a: usize| d.n[a] > 1 && d.n[a] % 2 == 1;
+    let slab = d.slab();
+    x.par_chunks_mut(slab)
+        .with_min_len(min_slabs(d))
+        .enumerate()
+        .for_each(|(z, xs)| {
+            let zm = if z == 0 { nz - 1 } else { z - 1 };
+            let zp = if z + 1 == nz { 0 } else { z + 1 };
+            for y in 0..ny {
+                let ym = if y == 0 { ny - 1 } else { y - 1 };
+                let yp = if y + 1 == ny { 0 } else { y + 1 };
+                let row = d.index(0, y, z);
+                let (rym, ryp) = (d.index(0, ym, z), d.index(0, yp, z));
+                let (rzm, rzp) = (d.index(0, y, zm), d.index(0, y, zp));
+                let seam_row = (odd(2) && z == nz - 1) || (odd(1) && y == ny - 1);
+                let out = &mut xs[y * nx..(y + 1) * nx];
+                out.iter_mut().for_each(|v| *v = 0.0);
+                if seam_row {
+                    continue;
+                }
+                let x_end = if odd(0) { nx - 1 } else { nx };
+                for xx in ((y + z) % 2..x_end).step_by(2) {
+                    let i = row + xx;
+                    if !op.active(i) {
+                        continue;
+                    }
+                    let xm = if xx == 0 { nx - 1 } else { xx - 1 };
+                    let xp = if xx + 1 == nx { 0 } else { xx + 1 };
+                    let nb = [row + xm, row + xp, rym + xx, ryp + xx, rzm + xx, rzp + xx];
+                    out[xx] = rhs[i] / op.diag(i, &nb);
+                }
+            }
+        });
+    if !no_seam(d) {
+        // Seam points of colour 0 in their sequential order, as `gs_colour` does.
+        let xs = Shared(x.as_mut_ptr(), x.len());
+        for p in seam_points(d, 0) {
+            let i = d.index(p[0], p[1], p[2]);
+            if op.active(i) {
+                let nb = d.neighbours(p[0], p[1], p[2]);
+                let s = offdiag_sum_shared(op, &xs, i, &nb);
+                // SAFETY: sequential phase.
+                unsafe { xs.write(i, (rhs[i] + s) / op.diag(i, &nb)) };
+            }
+        }
+    }
+}
+
+#[inline]
+fn offdiag_sum_shared<O: Op7>(op: &O, xs: &Shared, i: usize, nb: &[usize; 6]) -> f32 {
+    let d = op.dims();
+    let mut s = 0.0;
+    for b in 0..3 {
+        if d.n[b] == 1 {
+            continue;
+        }
+        let (jm, jp) = (nb[2 * b], nb[2 * b + 1]);
+        // SAFETY: called from a sequential phase only.
+        unsafe {
+            s += op.link(i, jp, b) * xs.read(jp) + op.link(jm, i, b) * xs.read(jm);
+        }
+    }
+    s
+}
+
+/// Forward smoothing from x = 0 (the start of every V-cycle level).
+fn smooth_forward_from_zero<O: Op7>(op: &O, x: &mut [f32], rhs: &[f32], sweeps: usize) {
+    if sweeps == 0 {
+        x.par_iter_mut()
+            .with_min_len(MIN_POINTS)
+            .for_each(|v| *v = 0.0);
+        return;
+    }
+    first_half_sweep(op, x, rhs);
+    gs_colour(op, x, rhs, 1, false);
+    smooth_forward(op, x, rhs, sweeps - 1);
+}
+
 fn smooth_forward<O: Op7>(op: &O, x: &mut [f32], rhs: &[f32], sweeps: usize) {
     for _ in 0..sweeps {
         gs_colour(op, x, rhs, 0, false);
@@ -327,7 +420,11 @@ fn smooth_backward<O: Op7>(op: &O, x: &mut [f32], rhs: &[f32], sweeps: usize) {
 }
 
 /// b_c = P^T (rhs - A x), the residual summed over each block's active points.
-fn restrict<O: Op7>(op: &O, x: &[f32], rhs: &[f32], coarse: &mut Coarse) {
+/// `colour0_only`: right after a forward red-black sweep (its last half-sweep colour 1, no
+/// seam) the residual at colour-1 points is zero up to round-off (they were just relaxed and
+/// their colour-0 neighbours have not moved since), so only colour-0 points are summed: half
+/// the operator evaluations of the restriction.
+fn restrict<O: Op7>(op: &O, x: &[f32], rhs: &[f32], coarse: &mut Coarse, colour0_only: bool) {
     let f = op.dims();
     let c = coarse.dims;
     let slab = c.slab();
@@ -346,6 +443,9 @@ fn restrict<O: Op7>(op: &O, x: &[f32], rhs: &[f32], coarse: &mut Coarse) {
                         for fz in 2 * cz..(2 * cz + 2).min(f.n[2]) {
                             for fy in 2 * cy..(2 * cy + 2).min(f.n[1]) {
                                 for fx in 2 * cx..(2 * cx + 2).min(f.n[0]) {
+                                    if colour0_only && (fx + fy + fz) % 2 == 1 {
+                                        continue;
+                                    }
                                     let i = f.index(fx, fy, fz);
                                     if op.active(i) {
                                         let nb = f.neighbours(fx, fy, fz);
@@ -361,16 +461,20 @@ fn restrict<O: Op7>(op: &O, x: &[f32], rhs: &[f32], coarse: &mut Coarse) {
         });
 }
 
-/// x += scale * P x_c on the active points.
-fn prolong<O: Op7>(op: &O, x: &mut [f32], xc: &[f32], c: Dims, scale: f32) {
+/// x += scale * P x_c on the active points. `colour0_only`: the backward sweep that follows
+/// starts with colour 1, whose update does not read its own old value, so (without a seam)
+/// the correction at colour-1 points would be overwritten unread: skipping it changes no value.
+fn prolong<O: Op7>(op: &O, x: &mut [f32], xc: &[f32], c: Dims, scale: f32, colour0_only: bool) {
     let f = op.dims();
     let slab = f.slab();
+    let step = if colour0_only { 2 } else { 1 };
     x.par_chunks_mut(slab)
         .with_min_len(min_slabs(f))
         .enumerate()
         .for_each(|(z, xs)| {
             for y in 0..f.n[1] {
-                for xx in 0..f.n[0] {
+                let start = if colour0_only { (y + z) % 2 } else { 0 };
+                for xx in (start..f.n[0]).step_by(step) {
                     let i = f.index(xx, y, z);
                     if op.active(i) {
                         xs[i - z * slab] += scale * xc[parent([xx, y, z], c)];
@@ -492,21 +596,22 @@ fn apply_op<O: Op7>(op: &O, x: &[f32], out: &mut [f32]) {
 
 /// z <- M^{-1} r by one symmetric V-cycle from z = 0 on `fine` and its Galerkin `levels`.
 fn vcycle_op<O: Op7>(fine: &O, levels: &mut [Coarse], s: CycleSettings, r: &[f32], z: &mut [f32]) {
-    z.par_iter_mut()
-        .with_min_len(MIN_POINTS)
-        .for_each(|v| *v = 0.0);
     if levels.is_empty() {
+        z.par_iter_mut()
+            .with_min_len(MIN_POINTS)
+            .for_each(|v| *v = 0.0);
         for _ in 0..s.coarsest_sweeps {
             smooth_forward(fine, z, r, 1);
             smooth_backward(fine, z, r, 1);
         }
         return;
     }
-    smooth_forward(fine, z, r, s.sweeps);
-    restrict(fine, z, r, &mut levels[0]);
+    let half = s.sweeps > 0 && no_seam(fine.dims());
+    smooth_forward_from_zero(fine, z, r, s.sweeps);
+    restrict(fine, z, r, &mut levels[0], half);
     cycle_level(levels, 0, s);
     let c = &levels[0];
-    prolong(fine, z, &c.x, c.dims, s.over_correction);
+    prolong(fine, z, &c.x, c.dims, s.over_correction, half);
     smooth_backward(fine, z, r, s.sweeps);
 }
 
@@ -604,10 +709,10 @@ fn cycle_level(levels: &mut [Coarse], l: usize, s: CycleSettings) {
     let (head, tail) = levels.split_at_mut(l + 1);
     let lev = &mut head[l];
     let mut x = std::mem::take(&mut lev.x);
-    x.par_iter_mut()
-        .with_min_len(MIN_POINTS)
-        .for_each(|v| *v = 0.0);
     if tail.is_empty() {
+        x.par_iter_mut()
+            .with_min_len(MIN_POINTS)
+            .for_each(|v| *v = 0.0);
         for _ in 0..s.coarsest_sweeps {
             smooth_forward(lev, &mut x, &lev.b, 1);
             smooth_backward(lev, &mut x, &lev.b, 1);
@@ -615,12 +720,20 @@ fn cycle_level(levels: &mut [Coarse], l: usize, s: CycleSettings) {
         lev.x = x;
         return;
     }
-    smooth_forward(lev, &mut x, &lev.b, s.sweeps);
-    restrict(lev, &x, &lev.b, &mut tail[0]);
+    let half = s.sweeps > 0 && no_seam(lev.dims);
+    smooth_forward_from_zero(lev, &mut x, &lev.b, s.sweeps);
+    restrict(lev, &x, &lev.b, &mut tail[0], half);
     cycle_level(levels, l + 1, s);
     let (head, tail) = levels.split_at_mut(l + 1);
     let lev = &mut head[l];
-    prolong(lev, &mut x, &tail[0].x, tail[0].dims, s.over_correction);
+    prolong(
+        lev,
+        &mut x,
+        &tail[0].x,
+        tail[0].dims,
+        s.over_correction,
+        half,
+    );
     smooth_backward(lev, &mut x, &lev.b, s.sweeps);
     lev.x = x;
 }

@@ -35,9 +35,8 @@ unsafe impl<T> Sync for Shared<T> {}
 
 /// Bytes per voxel of the solver state for `scheme` and `cg`, with `real` bytes per scalar
 /// (8 or 4). Counts the CG vectors (u, r, z, p, q: 15 scalars; u, r, z: 9 for the fixed
-/// point), the
-/// stencil scratch, the preconditioner table (9 scalars per half-spectrum frequency), the FFT
-/// buffers and the labels.
+/// point), the stencil scratch, the preconditioner table of the nodal schemes (9 scalars per
+/// half-spectrum frequency), the FFT buffers and the labels.
 pub fn bytes_per_voxel(scheme: Scheme, cg: bool, real: usize) -> f64 {
     let vectors = if cg { 15.0 } else { 9.0 };
     let scratch = match scheme {
@@ -48,7 +47,11 @@ pub fn bytes_per_voxel(scheme: Scheme, cg: bool, real: usize) -> f64 {
         // strains/stresses (6) + 4 half spectra (~4)
         Scheme::Spectral => 6.0 + 4.0,
     };
-    (vectors + scratch + 4.5) * real as f64 + 1.0
+    let table = match scheme {
+        Scheme::Hex8 | Scheme::Rotated => 4.5,
+        Scheme::Staggered | Scheme::Spectral => 0.0,
+    };
+    (vectors + scratch + table) * real as f64 + 1.0
 }
 
 pub struct Elastic<T: Real> {
@@ -64,7 +67,12 @@ pub struct Elastic<T: Real> {
     edge_mu: Vec<T>,
     reference: Iso,
     fft: Fft3<T>,
+    /// Nodal schemes: `K0^{-1} / N` per frequency, 9 scalars (see `hermitian_inverse`) per
+    /// frequency in the line order of [`Fft3::filter`] (kz fastest, then ky, then kx).
     pinv: Vec<T>,
+    /// Staggered and spectral schemes: the normal-strain multiplier `m_d` of each axis, from
+    /// which `K0^{-1}` is formed per frequency (see `precondition`); empty otherwise.
+    green_axes: [Vec<Complex<T>>; 3],
     spec: Vec<Complex<T>>,
     scratch: Vec<T>,
     gauss: Vec<([f64; 3], f64)>,
@@ -116,6 +124,7 @@ impl<T: Real> Elastic<T> {
             reference,
             fft,
             pinv: vec![],
+            green_axes: [vec![], vec![], vec![]],
             spec: vec![Complex::new(T::zero(), T::zero()); spec_n],
             scratch: vec![T::zero(); scratch_n],
             gauss: gauss_points(scheme),
@@ -124,7 +133,22 @@ impl<T: Real> Elastic<T> {
         if scheme == Scheme::Staggered {
             p.edge_mu = p.edge_moduli();
         }
-        p.pinv = p.reference_inverse();
+        match scheme {
+            Scheme::Staggered | Scheme::Spectral => {
+                p.green_axes = std::array::from_fn(|d| {
+                    let t = &p.tables[d];
+                    let m = if scheme == Scheme::Staggered {
+                        &t.minus
+                    } else {
+                        &t.spectral
+                    };
+                    m.iter()
+                        .map(|c| Complex::new(T::of(c.re), T::of(c.im)))
+                        .collect()
+                })
+            }
+            Scheme::Hex8 | Scheme::Rotated => p.pinv = p.reference_inverse(),
+        }
         p
     }
 
@@ -202,21 +226,22 @@ impl<T: Real> Elastic<T> {
         }
     }
 
-    /// `K0(xi)^{-1}` for every half-spectrum frequency, `K0 = sum_q w_q B_q^H C0 B_q`.
+    /// `K0(xi)^{-1} / N` for every half-spectrum frequency, `K0 = sum_q w_q B_q^H C0 B_q`, in
+    /// the line order of [`Fft3::filter`] (the `1/N` of the inverse FFT folded in).
     fn reference_inverse(&self) -> Vec<T> {
         let [_, ny, nz] = self.dims;
         let nkx = self.fft.nkx;
         let c0 = self.reference;
+        let inv_n = 1.0 / self.n as f64;
         // The largest trace sets the scale under which K0 counts as zero.
         let hmin = self.h.iter().cloned().fold(f64::INFINITY, f64::min);
         let scale = (c0.lambda.abs() + 2.0 * c0.mu) * 12.0 / (hmin * hmin);
         let mut out = vec![T::zero(); 9 * nkx * ny * nz];
-        out.par_chunks_mut(9 * nkx)
+        out.par_chunks_mut(9 * nz)
             .enumerate()
-            .for_each(|(row, o)| {
-                let ky = row % ny;
-                let kz = row / ny;
-                for kx in 0..nkx {
+            .for_each(|(line, o)| {
+                let (kx, ky) = (line / ny, line % ny);
+                for kz in 0..nz {
                     let mut k = [[C64::new(0.0, 0.0); 3]; 3];
                     for (nm, sh, w) in self.symbol_points(kx, ky, kz) {
                         // Rows of B acting on (u_x, u_y, u_z): normal d -> nm[d] on u_d; shear yz
@@ -246,8 +271,8 @@ impl<T: Real> Elastic<T> {
                         }
                     }
                     let inv = hermitian_inverse(k, 1e-12 * scale);
-                    for (d, v) in o[9 * kx..9 * kx + 9].iter_mut().zip(inv) {
-                        *d = T::of(v);
+                    for (d, v) in o[9 * kz..9 * kz + 9].iter_mut().zip(inv) {
+                        *d = T::of(v * inv_n);
                     }
                 }
             });
@@ -943,41 +968,65 @@ impl<T: Real> CellProblem<T> for Elastic<T> {
 
     fn precondition(&mut self, r: &[T], z: &mut [T]) {
         let n = self.n;
-        let sl = self.fft.spectrum_len();
         let mut spec = std::mem::take(&mut self.spec);
-        for c in 0..3 {
-            self.fft
-                .forward(&r[c * n..(c + 1) * n], &mut spec[c * sl..(c + 1) * sl]);
-        }
-        {
-            let (s0, rest) = spec.split_at_mut(sl);
-            let (s1, rest) = rest.split_at_mut(sl);
-            let s2 = &mut rest[..sl];
+        let (r0, rest) = r.split_at(n);
+        let (r1, r2) = rest.split_at(n);
+        let (z0, rest) = z.split_at_mut(n);
+        let (z1, z2) = rest.split_at_mut(n);
+        let inv_n = 1.0 / n as f64;
+        if self.green_axes[0].is_empty() {
+            let nz = self.dims[2];
+            let ny = self.dims[1];
             let pinv = &self.pinv;
-            s0.par_chunks_mut(4096)
-                .zip(s1.par_chunks_mut(4096))
-                .zip(s2.par_chunks_mut(4096))
-                .enumerate()
-                .for_each(|(ch, ((a, b), c))| {
-                    for k in 0..a.len() {
-                        let p = &pinv[9 * (ch * 4096 + k)..9 * (ch * 4096 + k) + 9];
+            self.fft
+                .filter([r0, r1, r2], [z0, z1, z2], &mut spec, |kx, ky, l| {
+                    let line = &pinv[9 * nz * (kx * ny + ky)..9 * nz * (kx * ny + ky + 1)];
+                    for kz in 0..nz {
+                        let p = &line[9 * kz..9 * kz + 9];
                         let o01 = Complex::new(p[3], p[4]);
                         let o02 = Complex::new(p[5], p[6]);
                         let o12 = Complex::new(p[7], p[8]);
-                        let (x, y, w) = (a[k], b[k], c[k]);
-                        a[k] = x * p[0] + o01 * y + o02 * w;
-                        b[k] = o01.conj() * x + y * p[1] + o12 * w;
-                        c[k] = o02.conj() * x + o12.conj() * y + w * p[2];
+                        let (x, y, w) = (l[0][kz], l[1][kz], l[2][kz]);
+                        l[0][kz] = x * p[0] + o01 * y + o02 * w;
+                        l[1][kz] = o01.conj() * x + y * p[1] + o12 * w;
+                        l[2][kz] = o02.conj() * x + o12.conj() * y + w * p[2];
                     }
                 });
-        }
-        let inv_n = T::of(1.0 / n as f64);
-        for c in 0..3 {
+        } else {
+            // Both schemes have normal strains m_d u_d and shear strains p_c u_d + p_d u_c
+            // with conj(p_d) = -m_d (staggered: forward and backward differences, spectral:
+            // p = m = i k), so u^H K0 u = mu0 |m|^2 |u|^2 + (lambda0 + mu0) |m . u|^2, i.e.
+            // K0 = mu0 s I + (lambda0 + mu0) conj(m) m^T with s = |m|^2, and by
+            // Sherman-Morrison K0^{-1} r = (r - (lambda0 + mu0) / ((lambda0 + 2 mu0) s)
+            // conj(m) (m . r)) / (mu0 s): the isotropic Green operator of Moulinec & Suquet
+            // (1998) in discrete form. Formed per frequency from three axis tables instead of
+            // a stored 9-scalar table (36 bytes per voxel less memory and traffic); zero where
+            // s = 0 (the mean, and the spectral Nyquist planes' singular frequencies).
+            let c0 = self.reference;
+            let a = T::of(inv_n / c0.mu);
+            let b = T::of((c0.lambda + c0.mu) / (c0.lambda + 2.0 * c0.mu));
+            let [gx, gy, gz] = &self.green_axes;
             self.fft
-                .inverse(&mut spec[c * sl..(c + 1) * sl], &mut z[c * n..(c + 1) * n]);
-            z[c * n..(c + 1) * n]
-                .par_iter_mut()
-                .for_each(|v| *v = *v * inv_n);
+                .filter([r0, r1, r2], [z0, z1, z2], &mut spec, |kx, ky, l| {
+                    let (mx, my) = (gx[kx], gy[ky]);
+                    let sxy = mx.norm_sqr() + my.norm_sqr();
+                    for (kz, &mz) in gz.iter().enumerate() {
+                        let s = sxy + mz.norm_sqr();
+                        if s == T::zero() {
+                            l[0][kz] = Complex::new(T::zero(), T::zero());
+                            l[1][kz] = Complex::new(T::zero(), T::zero());
+                            l[2][kz] = Complex::new(T::zero(), T::zero());
+                            continue;
+                        }
+                        let is = s.recip();
+                        let (x, y, w) = (l[0][kz], l[1][kz], l[2][kz]);
+                        let t = (mx * x + my * y + mz * w) * (b * is);
+                        let g = a * is;
+                        l[0][kz] = (x - mx.conj() * t) * g;
+                        l[1][kz] = (y - my.conj() * t) * g;
+                        l[2][kz] = (w - mz.conj() * t) * g;
+                    }
+                });
         }
         self.spec = spec;
     }
@@ -991,5 +1040,110 @@ impl<T: Real> CellProblem<T> for Elastic<T> {
             }
         }
         e * self.n as f64
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The preconditioner (fused FFT filter; closed-form Green operator for staggered and
+    /// spectral, reordered table for the nodal schemes) against the textbook route: forward
+    /// FFT, `hermitian_inverse` of `K0` per frequency, inverse FFT, `1/N`.
+    #[test]
+    fn preconditioner_matches_explicit_inverse() {
+        let dims = [6, 5, 4];
+        let n: usize = dims.iter().product();
+        let h = [1.0, 0.8, 1.3];
+        let labels: Vec<u8> = (0..n).map(|i| (i * 7 % 3) as u8).collect();
+        let mut mats = [Iso::ZERO; 256];
+        mats[1] = Iso::from_e_nu(2.0, 0.25);
+        mats[2] = Iso::from_e_nu(1.0, 0.3);
+        let c0 = Iso::from_e_nu(1.5, 0.2);
+        let r: Vec<f64> = (0..3 * n).map(|i| (i as f64 * 0.61).sin()).collect();
+        for scheme in [
+            Scheme::Staggered,
+            Scheme::Spectral,
+            Scheme::Hex8,
+            Scheme::Rotated,
+        ] {
+            let mut p = Elastic::<f64>::new(dims, h, labels.clone(), mats, scheme, c0);
+            let mut z = vec![0.0; 3 * n];
+            p.precondition(&r, &mut z);
+            let f = Fft3::<f64>::new(dims);
+            let (nkx, sl) = (f.nkx, f.spectrum_len());
+            let mut spec = vec![Complex::new(0.0, 0.0); 3 * sl];
+            for c in 0..3 {
+                f.forward(&r[c * n..(c + 1) * n], &mut spec[c * sl..(c + 1) * sl]);
+            }
+            let scale = (c0.lambda + 2.0 * c0.mu) * 12.0 / (0.8 * 0.8);
+            for kz in 0..dims[2] {
+                for ky in 0..dims[1] {
+                    for kx in 0..nkx {
+                        let mut k = [[C64::new(0.0, 0.0); 3]; 3];
+                        for (nm, sh, w) in p.symbol_points(kx, ky, kz) {
+                            let zero = C64::new(0.0, 0.0);
+                            let rows: [[C64; 3]; 6] = [
+                                [nm[0], zero, zero],
+                                [zero, nm[1], zero],
+                                [zero, zero, nm[2]],
+                                [zero, sh[2], sh[1]],
+                                [sh[2], zero, sh[0]],
+                                [sh[1], sh[0], zero],
+                            ];
+                            let c = c0.voigt();
+                            for a in 0..3 {
+                                for b in 0..3 {
+                                    for i in 0..6 {
+                                        for j in 0..6 {
+                                            k[a][b] += rows[i][a].conj() * c[i][j] * rows[j][b] * w;
+                                        }
+                                    }
+                                }
+                            }
+                        }
+                        let v = hermitian_inverse(k, 1e-12 * scale);
+                        let m = [
+                            [
+                                C64::new(v[0], 0.0),
+                                C64::new(v[3], v[4]),
+                                C64::new(v[5], v[6]),
+                            ],
+                            [
+                                C64::new(v[3], -v[4]),
+                                C64::new(v[1], 0.0),
+                                C64::new(v[7], v[8]),
+                            ],
+                            [
+                                C64::new(v[5], -v[6]),
+                                C64::new(v[7], -v[8]),
+                                C64::new(v[2], 0.0),
+                            ],
+                        ];
+                        let i = kx + nkx * (ky + dims[1] * kz);
+                        let x = [spec[i], spec[sl + i], spec[2 * sl + i]];
+                        for a in 0..3 {
+                            spec[a * sl + i] = m[a][0] * x[0] + m[a][1] * x[1] + m[a][2] * x[2];
+                        }
+                    }
+                }
+            }
+            let mut want = vec![0.0; 3 * n];
+            for c in 0..3 {
+                f.inverse(
+                    &mut spec[c * sl..(c + 1) * sl],
+                    &mut want[c * n..(c + 1) * n],
+                );
+            }
+            let top = want.iter().fold(0.0f64, |a, v| a.max(v.abs())) / n as f64;
+            for i in 0..3 * n {
+                assert!(
+                    (z[i] - want[i] / n as f64).abs() <= 1e-12 * top,
+                    "{scheme:?} at {i}: {} vs {}",
+                    z[i],
+                    want[i] / n as f64
+                );
+            }
+        }
     }
 }

@@ -147,22 +147,25 @@ impl<T: Real> Scalar<T> {
         }
     }
 
+    /// `K0^{-1} / N` per frequency in the line order of [`Fft3::filter`] (kz fastest, then ky,
+    /// then kx), the `1/N` of the inverse FFT folded in.
     fn reference_inverse(&self) -> Vec<T> {
         let [_, ny, nz] = self.dims;
         let nkx = self.fft.nkx;
         let hmin = self.h.iter().cloned().fold(f64::INFINITY, f64::min);
         let zero_below = 1e-12 * 12.0 * self.reference / (hmin * hmin);
+        let inv_n = 1.0 / self.n as f64;
         let mut out = vec![T::zero(); nkx * ny * nz];
-        out.par_chunks_mut(nkx).enumerate().for_each(|(row, o)| {
-            let (ky, kz) = (row % ny, row / ny);
-            for (kx, o) in o.iter_mut().enumerate() {
+        out.par_chunks_mut(nz).enumerate().for_each(|(line, o)| {
+            let (kx, ky) = (line / ny, line % ny);
+            for (kz, o) in o.iter_mut().enumerate() {
                 let k0: f64 = self
                     .symbol_points(kx, ky, kz)
                     .iter()
                     .map(|(g, w)| w * self.reference * g.iter().map(|c| c.norm_sqr()).sum::<f64>())
                     .sum();
                 *o = if k0 > zero_below {
-                    T::of(1.0 / k0)
+                    T::of(inv_n / k0)
                 } else {
                     T::zero()
                 };
@@ -542,15 +545,12 @@ impl<T: Real> CellProblem<T> for Scalar<T> {
     }
     fn precondition(&mut self, r: &[T], z: &mut [T]) {
         let mut spec = std::mem::take(&mut self.spec);
-        let sl = self.fft.spectrum_len();
-        let s = &mut spec[..sl];
-        self.fft.forward(r, s);
-        s.par_iter_mut()
-            .zip(self.pinv.par_iter())
-            .for_each(|(v, &p)| *v = *v * p);
-        self.fft.inverse(s, z);
-        let inv_n = T::of(1.0 / self.n as f64);
-        z.par_iter_mut().for_each(|v| *v = *v * inv_n);
+        let [_, ny, nz] = self.dims;
+        let pinv = &self.pinv;
+        self.fft.filter([r], [z], &mut spec, |kx, ky, l| {
+            let p = &pinv[nz * (kx * ny + ky)..nz * (kx * ny + ky + 1)];
+            l[0].iter_mut().zip(p).for_each(|(v, &p)| *v = *v * p);
+        });
         self.spec = spec;
     }
     fn load_energy(&self, load: &[f64]) -> f64 {
