@@ -5,11 +5,14 @@
 //! Prints iterations, seconds per iteration, the stiffness and the engineering constants.
 #![allow(clippy::needless_range_loop)]
 
+mod images;
+
 use grainpipe_core::stage::SilentReporter;
 use grainpipe_core::{Grid, Phase, PhaseImage, RunContext};
 use grainpipe_fft::common::{Discretization, Material, Precision, Solver};
 use grainpipe_fft::elasticity::{solve_all, ElasticityParams, LoadCase};
 use grainpipe_fft::kernel::Iso;
+use images::sphere_pore;
 use indexmap::IndexMap;
 use std::time::Instant;
 
@@ -76,45 +79,6 @@ pub fn sand(n: usize) -> PhaseImage {
             Phase {
                 id: 2,
                 name: "binder".into(),
-            },
-        ],
-    }
-}
-
-pub fn sphere_pore(n: usize) -> PhaseImage {
-    // porosity 0.2: r^3 = 0.2 * 3 / (4 pi) of the cell
-    let r = (0.2 * 3.0 / (4.0 * std::f64::consts::PI)).cbrt() * n as f64;
-    let c = n as f64 / 2.0;
-    let mut labels = vec![1u8; n * n * n];
-    for z in 0..n {
-        for y in 0..n {
-            for x in 0..n {
-                let d2 = [x, y, z]
-                    .iter()
-                    .map(|&p| (p as f64 + 0.5 - c).powi(2))
-                    .sum::<f64>();
-                if d2 < r * r {
-                    labels[x + n * (y + n * z)] = 0;
-                }
-            }
-        }
-    }
-    PhaseImage {
-        grid: Grid {
-            dims: [n; 3],
-            spacing: [1.0 / n as f64; 3],
-            origin: [0.0; 3],
-            periodic: [true; 3],
-        },
-        labels,
-        phases: vec![
-            Phase {
-                id: 0,
-                name: "pore".into(),
-            },
-            Phase {
-                id: 1,
-                name: "solid".into(),
             },
         ],
     }

@@ -13,54 +13,16 @@
 //! spectral scheme on pores) is a row with status `failed: <cause>` and empty moduli, so a
 //! sweep records it instead of stopping.
 
+mod images;
+
 use grainpipe_core::stage::{Level, Reporter};
-use grainpipe_core::{Grid, Phase, PhaseImage, RunContext};
+use grainpipe_core::RunContext;
 use grainpipe_fft::common::{Discretization, Material, Precision};
 use grainpipe_fft::elasticity::{solve_all, ElasticityParams, LoadCase};
 use grainpipe_fft::kernel::Iso;
+use images::sphere_pore;
 use indexmap::IndexMap;
 use std::time::Instant;
-
-/// The pore is the set of voxel centres within r of the cell centre, r from the nominal
-/// porosity 0.2 (r = 0.3628 of the cell: no overlap with the periodic images). The voxel
-/// porosity differs from 0.2 by O(1/n); it is printed so the reference can account for it.
-fn sphere_pore(n: usize) -> PhaseImage {
-    let r = (0.2 * 3.0 / (4.0 * std::f64::consts::PI)).cbrt() * n as f64;
-    let c = n as f64 / 2.0;
-    let mut labels = vec![1u8; n * n * n];
-    for z in 0..n {
-        for y in 0..n {
-            for x in 0..n {
-                let d2: f64 = [x, y, z]
-                    .iter()
-                    .map(|&p| (p as f64 + 0.5 - c).powi(2))
-                    .sum();
-                if d2 < r * r {
-                    labels[x + n * (y + n * z)] = 0;
-                }
-            }
-        }
-    }
-    PhaseImage {
-        grid: Grid {
-            dims: [n; 3],
-            spacing: [1.0 / n as f64; 3],
-            origin: [0.0; 3],
-            periodic: [true; 3],
-        },
-        labels,
-        phases: vec![
-            Phase {
-                id: 0,
-                name: "pore".into(),
-            },
-            Phase {
-                id: 1,
-                name: "solid".into(),
-            },
-        ],
-    }
-}
 
 /// Messages of the solver go to stderr so stdout stays a clean CSV.
 struct Stderr;

@@ -102,6 +102,9 @@ fn main() {
     let n: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(1024);
     let adr_its: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(2000);
     let out = args.get(3).cloned();
+    if let Some(dir) = &out {
+        std::fs::create_dir_all(dir).unwrap_or_else(|e| panic!("cannot create {dir}: {e}"));
+    }
     let threads = rayon::current_num_threads();
     println!("grid {n}x{n}, h = 3 dx, {threads} threads");
     let t = Instant::now();
