@@ -5,7 +5,7 @@
 
 use grainpipe_core::fsutil::{atomic_write, atomic_write_bytes};
 use grainpipe_core::registry::{ExportOption, ExportOptions};
-use grainpipe_core::{Artifact, ArtifactKind, BodyShape, Clump, Exporter, Packing, Provenance};
+use grainpipe_core::{Artifact, BodyShape, Clump, Packing, Provenance};
 use std::f64::consts::PI;
 use std::fmt::Write as _;
 use std::path::Path;
@@ -131,45 +131,36 @@ pub fn lammps_data_text(p: &Packing, prov: &Provenance, rho: f64) -> Result<Stri
     Ok(s)
 }
 
-/// The `lammps-data` exporter.
-pub struct LammpsDataExporter;
+crate::vtk_xml::exporter!(
+    LammpsDataExporter,
+    "lammps-data",
+    &["data", "lmp"],
+    [Packing],
+    "LAMMPS data file (`units si`, `read_data`): one atom per sphere, box = the packing's \
+     domain (coordinates wrapped on periodic axes). Sphere packings: `atom_style sphere`, \
+     columns id type diameter density x y z. Clump packings: `atom_style hybrid sphere \
+     molecular`, columns id type x y z diameter density molecule, one molecule per body \
+     for `fix rigid/small molecule`.",
+    options: vec![density_option()],
+    check: check_density,
+    write: write_lammps_data
+);
 
-impl Exporter for LammpsDataExporter {
-    fn name(&self) -> &'static str {
-        "lammps-data"
-    }
-    fn extensions(&self) -> &'static [&'static str] {
-        &["data", "lmp"]
-    }
-    fn accepts(&self, kind: ArtifactKind) -> bool {
-        kind == ArtifactKind::Packing
-    }
-    fn doc(&self) -> &'static str {
-        "LAMMPS data file (`units si`, `read_data`): one atom per sphere, box = the packing's \
-         domain (coordinates wrapped on periodic axes). Sphere packings: `atom_style sphere`, \
-         columns id type diameter density x y z. Clump packings: `atom_style hybrid sphere \
-         molecular`, columns id type x y z diameter density molecule, one molecule per body \
-         for `fix rigid/small molecule`."
-    }
-    fn options(&self) -> Vec<ExportOption> {
-        vec![density_option()]
-    }
-    fn check_options(&self, o: &ExportOptions) -> Result<(), (String, String)> {
-        density(o).map(|_| ()).map_err(|m| ("density".into(), m))
-    }
-    fn write(
-        &self,
-        a: &Artifact,
-        path: &Path,
-        prov: &Provenance,
-        o: &ExportOptions,
-    ) -> Result<(), String> {
-        let Artifact::Packing(p) = a else {
-            return Err(format!("lammps-data takes a Packing, not a {}", a.kind()));
-        };
-        let text = lammps_data_text(p, prov, density(o)?)?;
-        atomic_write_bytes(path, text.as_bytes())
-    }
+fn check_density(o: &ExportOptions) -> Result<(), (String, String)> {
+    density(o).map(|_| ()).map_err(|m| ("density".into(), m))
+}
+
+fn write_lammps_data(
+    a: &Artifact,
+    path: &Path,
+    prov: &Provenance,
+    o: &ExportOptions,
+) -> Result<(), String> {
+    let Artifact::Packing(p) = a else {
+        return Err(format!("lammps-data takes a Packing, not a {}", a.kind()));
+    };
+    let text = lammps_data_text(p, prov, density(o)?)?;
+    atomic_write_bytes(path, text.as_bytes())
 }
 
 // ---------------------------------------------------------------------------------------
@@ -220,70 +211,57 @@ pub fn molecule_paths(path: &Path, n: usize) -> Vec<std::path::PathBuf> {
         .collect()
 }
 
-/// The `lammps-molecule` exporter.
-pub struct LammpsMoleculeExporter;
+crate::vtk_xml::exporter!(
+    LammpsMoleculeExporter,
+    "lammps-molecule",
+    &[],
+    [ClumpLibrary, Packing],
+    "LAMMPS molecule templates of a clump library (or a packing's library): one molecule \
+     file per clump, `<stem>_0000.mol`, ... beside `to:` (Coords in the body frame about \
+     the centroid, Types, Diameters, Masses summing to density x clump volume), and at \
+     `to:` an input snippet `molecule grains <files>` to `include`. Select it with \
+     `format: lammps-molecule`, e.g. `to: out/grains.in`.",
+    options: vec![density_option()],
+    check: check_density,
+    write: write_lammps_molecules
+);
 
-impl Exporter for LammpsMoleculeExporter {
-    fn name(&self) -> &'static str {
-        "lammps-molecule"
-    }
-    fn extensions(&self) -> &'static [&'static str] {
-        &[]
-    }
-    fn accepts(&self, kind: ArtifactKind) -> bool {
-        matches!(kind, ArtifactKind::ClumpLibrary | ArtifactKind::Packing)
-    }
-    fn doc(&self) -> &'static str {
-        "LAMMPS molecule templates of a clump library (or a packing's library): one molecule \
-         file per clump, `<stem>_0000.mol`, ... beside `to:` (Coords in the body frame about \
-         the centroid, Types, Diameters, Masses summing to density x clump volume), and at \
-         `to:` an input snippet `molecule grains <files>` to `include`. Select it with \
-         `format: lammps-molecule`, e.g. `to: out/grains.in`."
-    }
-    fn options(&self) -> Vec<ExportOption> {
-        vec![density_option()]
-    }
-    fn check_options(&self, o: &ExportOptions) -> Result<(), (String, String)> {
-        density(o).map(|_| ()).map_err(|m| ("density".into(), m))
-    }
-    fn write(
-        &self,
-        a: &Artifact,
-        path: &Path,
-        prov: &Provenance,
-        o: &ExportOptions,
-    ) -> Result<(), String> {
-        let lib = match a {
-            Artifact::ClumpLibrary(l) => l,
-            Artifact::Packing(p) => p.library.as_ref().ok_or_else(|| {
-                "the packing has no clump library (sphere packings: use `lammps-data`)".to_string()
-            })?,
-            other => {
-                return Err(format!(
-                    "lammps-molecule takes a ClumpLibrary, not a {}",
-                    other.kind()
-                ))
-            }
-        };
-        if lib.clumps.is_empty() {
-            return Err("the clump library is empty".into());
+fn write_lammps_molecules(
+    a: &Artifact,
+    path: &Path,
+    prov: &Provenance,
+    o: &ExportOptions,
+) -> Result<(), String> {
+    let lib = match a {
+        Artifact::ClumpLibrary(l) => l,
+        Artifact::Packing(p) => p.library.as_ref().ok_or_else(|| {
+            "the packing has no clump library (sphere packings: use `lammps-data`)".to_string()
+        })?,
+        other => {
+            return Err(format!(
+                "lammps-molecule takes a ClumpLibrary, not a {}",
+                other.kind()
+            ))
         }
-        let rho = density(o)?;
-        let files = molecule_paths(path, lib.clumps.len());
-        for (c, f) in lib.clumps.iter().zip(&files) {
-            atomic_write_bytes(f, lammps_molecule_text(c, prov, rho).as_bytes())?;
-        }
-        let names: Vec<String> = files
-            .iter()
-            .map(|f| f.file_name().unwrap().to_string_lossy().into_owned())
-            .collect();
-        let script = format!(
-            "# LAMMPS: include this file from the directory holding it\n{}molecule grains {}\n",
-            header_comment(prov, "# "),
-            names.join(" ")
-        );
-        atomic_write(path, |tmp| std::fs::write(tmp, script))
+    };
+    if lib.clumps.is_empty() {
+        return Err("the clump library is empty".into());
     }
+    let rho = density(o)?;
+    let files = molecule_paths(path, lib.clumps.len());
+    for (c, f) in lib.clumps.iter().zip(&files) {
+        atomic_write_bytes(f, lammps_molecule_text(c, prov, rho).as_bytes())?;
+    }
+    let names: Vec<String> = files
+        .iter()
+        .map(|f| f.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    let script = format!(
+        "# LAMMPS: include this file from the directory holding it\n{}molecule grains {}\n",
+        header_comment(prov, "# "),
+        names.join(" ")
+    );
+    atomic_write(path, |tmp| std::fs::write(tmp, script))
 }
 
 // ---------------------------------------------------------------------------------------
@@ -307,35 +285,21 @@ pub fn yade_text(p: &Packing, prov: &Provenance) -> Result<String, String> {
     Ok(s)
 }
 
-/// The `yade` exporter.
-pub struct YadeExporter;
+crate::vtk_xml::exporter!(
+    YadeExporter,
+    "yade",
+    &[],
+    [Packing],
+    "Sphere text file for Yade: one line `x y z r clump_id` per sphere [m] (clumps \
+     expanded, clump_id = body index), `#` comments first. `ymport.text(file)` reads the \
+     spheres, `ymport.textClumps(file)` builds one clump per clump_id. Select it with \
+     `format: yade` (e.g. `to: out/bed.txt`).",
+    write_yade
+);
 
-impl Exporter for YadeExporter {
-    fn name(&self) -> &'static str {
-        "yade"
-    }
-    fn extensions(&self) -> &'static [&'static str] {
-        &[]
-    }
-    fn accepts(&self, kind: ArtifactKind) -> bool {
-        kind == ArtifactKind::Packing
-    }
-    fn doc(&self) -> &'static str {
-        "Sphere text file for Yade: one line `x y z r clump_id` per sphere [m] (clumps \
-         expanded, clump_id = body index), `#` comments first. `ymport.text(file)` reads the \
-         spheres, `ymport.textClumps(file)` builds one clump per clump_id. Select it with \
-         `format: yade` (e.g. `to: out/bed.txt`)."
-    }
-    fn write(
-        &self,
-        a: &Artifact,
-        path: &Path,
-        prov: &Provenance,
-        _options: &ExportOptions,
-    ) -> Result<(), String> {
-        let Artifact::Packing(p) = a else {
-            return Err(format!("yade takes a Packing, not a {}", a.kind()));
-        };
-        atomic_write_bytes(path, yade_text(p, prov)?.as_bytes())
-    }
+fn write_yade(a: &Artifact, path: &Path, prov: &Provenance) -> Result<(), String> {
+    let Artifact::Packing(p) = a else {
+        return Err(format!("yade takes a Packing, not a {}", a.kind()));
+    };
+    atomic_write_bytes(path, yade_text(p, prov)?.as_bytes())
 }
