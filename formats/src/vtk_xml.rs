@@ -678,18 +678,22 @@ fn pvd_extension<'a>(
 }
 
 macro_rules! exporter {
+    // The methods every format has: name, extensions, the kinds it takes, its description.
+    (@identity $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr) => {
+        fn name(&self) -> &'static str { $name }
+        fn extensions(&self) -> &'static [&'static str] { $ext }
+        fn accepts(&self, kind: grainpipe_core::ArtifactKind) -> bool {
+            matches!(kind, $(grainpipe_core::ArtifactKind::$kind)|*)
+        }
+        fn doc(&self) -> &'static str { $doc }
+    };
     // A format with options: `$options` lists them, `$check` validates their values at
     // preflight, `$write` writes with the options (every declared one, defaults filled in).
     ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr,
      options: $options:expr, check: $check:path, write: $write:path) => {
         pub struct $ty;
         impl grainpipe_core::Exporter for $ty {
-            fn name(&self) -> &'static str { $name }
-            fn extensions(&self) -> &'static [&'static str] { $ext }
-            fn accepts(&self, kind: grainpipe_core::ArtifactKind) -> bool {
-                matches!(kind, $(grainpipe_core::ArtifactKind::$kind)|*)
-            }
-            fn doc(&self) -> &'static str { $doc }
+            $crate::vtk_xml::exporter!(@identity $name, $ext, [$($kind),*], $doc);
             fn options(&self) -> Vec<grainpipe_core::registry::ExportOption> {
                 $options
             }
@@ -713,12 +717,7 @@ macro_rules! exporter {
     ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr, $write:path) => {
         pub struct $ty;
         impl grainpipe_core::Exporter for $ty {
-            fn name(&self) -> &'static str { $name }
-            fn extensions(&self) -> &'static [&'static str] { $ext }
-            fn accepts(&self, kind: grainpipe_core::ArtifactKind) -> bool {
-                matches!(kind, $(grainpipe_core::ArtifactKind::$kind)|*)
-            }
-            fn doc(&self) -> &'static str { $doc }
+            $crate::vtk_xml::exporter!(@identity $name, $ext, [$($kind),*], $doc);
             fn write(
                 &self,
                 a: &grainpipe_core::Artifact,
