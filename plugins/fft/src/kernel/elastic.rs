@@ -242,34 +242,7 @@ impl<T: Real> Elastic<T> {
             .for_each(|(line, o)| {
                 let (kx, ky) = (line / ny, line % ny);
                 for kz in 0..nz {
-                    let mut k = [[C64::new(0.0, 0.0); 3]; 3];
-                    for (nm, sh, w) in self.symbol_points(kx, ky, kz) {
-                        // Rows of B acting on (u_x, u_y, u_z): normal d -> nm[d] on u_d; shear yz
-                        // -> (0, sh_z, sh_y), xz -> (sh_z, 0, sh_x), xy -> (sh_y, sh_x, 0).
-                        let zero = C64::new(0.0, 0.0);
-                        let rows: [[C64; 3]; 6] = [
-                            [nm[0], zero, zero],
-                            [zero, nm[1], zero],
-                            [zero, zero, nm[2]],
-                            [zero, sh[2], sh[1]],
-                            [sh[2], zero, sh[0]],
-                            [sh[1], sh[0], zero],
-                        ];
-                        let c = c0.voigt();
-                        for a in 0..3 {
-                            for b in 0..3 {
-                                let mut s = C64::new(0.0, 0.0);
-                                for i in 0..6 {
-                                    for j in 0..6 {
-                                        if c[i][j] != 0.0 {
-                                            s += rows[i][a].conj() * c[i][j] * rows[j][b];
-                                        }
-                                    }
-                                }
-                                k[a][b] += s * w;
-                            }
-                        }
-                    }
+                    let k = self.reference_symbol(kx, ky, kz);
                     let inv = hermitian_inverse(k, 1e-12 * scale);
                     for (d, v) in o[9 * kz..9 * kz + 9].iter_mut().zip(inv) {
                         *d = T::of(v * inv_n);
@@ -277,6 +250,39 @@ impl<T: Real> Elastic<T> {
                 }
             });
         out
+    }
+
+    /// The reference operator's symbol `K0(xi) = sum_q w_q B_q^H C0 B_q` at one frequency.
+    fn reference_symbol(&self, kx: usize, ky: usize, kz: usize) -> [[C64; 3]; 3] {
+        let c = self.reference.voigt();
+        let mut k = [[C64::new(0.0, 0.0); 3]; 3];
+        for (nm, sh, w) in self.symbol_points(kx, ky, kz) {
+            // Rows of B acting on (u_x, u_y, u_z): normal d -> nm[d] on u_d; shear yz
+            // -> (0, sh_z, sh_y), xz -> (sh_z, 0, sh_x), xy -> (sh_y, sh_x, 0).
+            let zero = C64::new(0.0, 0.0);
+            let rows: [[C64; 3]; 6] = [
+                [nm[0], zero, zero],
+                [zero, nm[1], zero],
+                [zero, zero, nm[2]],
+                [zero, sh[2], sh[1]],
+                [sh[2], zero, sh[0]],
+                [sh[1], sh[0], zero],
+            ];
+            for a in 0..3 {
+                for b in 0..3 {
+                    let mut s = C64::new(0.0, 0.0);
+                    for i in 0..6 {
+                        for j in 0..6 {
+                            if c[i][j] != 0.0 {
+                                s += rows[i][a].conj() * c[i][j] * rows[j][b];
+                            }
+                        }
+                    }
+                    k[a][b] += s * w;
+                }
+            }
+        }
+        k
     }
 
     /// Staggered grid: stresses at voxel centres (normal) and edges (shear) into `scratch`.
@@ -1080,28 +1086,7 @@ mod tests {
             for kz in 0..dims[2] {
                 for ky in 0..dims[1] {
                     for kx in 0..nkx {
-                        let mut k = [[C64::new(0.0, 0.0); 3]; 3];
-                        for (nm, sh, w) in p.symbol_points(kx, ky, kz) {
-                            let zero = C64::new(0.0, 0.0);
-                            let rows: [[C64; 3]; 6] = [
-                                [nm[0], zero, zero],
-                                [zero, nm[1], zero],
-                                [zero, zero, nm[2]],
-                                [zero, sh[2], sh[1]],
-                                [sh[2], zero, sh[0]],
-                                [sh[1], sh[0], zero],
-                            ];
-                            let c = c0.voigt();
-                            for a in 0..3 {
-                                for b in 0..3 {
-                                    for i in 0..6 {
-                                        for j in 0..6 {
-                                            k[a][b] += rows[i][a].conj() * c[i][j] * rows[j][b] * w;
-                                        }
-                                    }
-                                }
-                            }
-                        }
+                        let k = p.reference_symbol(kx, ky, kz);
                         let v = hermitian_inverse(k, 1e-12 * scale);
                         let m = [
                             [
