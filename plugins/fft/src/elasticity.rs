@@ -166,7 +166,7 @@ impl TypedStage for ElasticityFft {
              Voigt order 11, 22, 33, 23, 13, 12 with engineering shear strains (C44 is a \
              shear modulus), in Pa. The solver fails, naming the residual reached, on \
              stagnation, divergence, loss of positive definiteness or the iteration limit. \
-             Memory: about 215 bytes per voxel per load case solved at a time (two at a time with two or more threads while one state is at most 1 GiB, about 170^3) for staggered CG in double precision, half in single.",
+             Memory: about 177 bytes per voxel per load case solved at a time (two at a time with two or more threads while one state is at most 1 GiB, about 170^3) for staggered CG in double precision, half in single.",
         )
         .inputs(vec![PortSpec::new(
             "image",

@@ -21,6 +21,12 @@ pub trait CellProblem<T: Real> {
     fn unknowns(&self) -> usize;
     /// `out = B^T C (E + B u)` with `E` the macroscopic load (`None`: zero).
     fn apply(&mut self, u: &[T], load: Option<&[f64]>, out: &mut [T]);
+    /// `out = K p` (no load) and `p . out`; override where the dot product rides on the
+    /// sweep that writes `out`.
+    fn apply_dot(&mut self, p: &[T], out: &mut [T]) -> f64 {
+        self.apply(p, None, out);
+        dot(p, out)
+    }
     /// `z = K0^{-1} r` (zero on the null space of `K0`).
     fn precondition(&mut self, r: &[T], z: &mut [T]);
     /// `N E : C0 : E`, the reference energy of the load over the cell.
@@ -212,8 +218,7 @@ pub fn solve<T: Real, P: CellProblem<T>>(
             let mut p = z.clone();
             let mut q = vec![T::zero(); n];
             for it in 1..=opt.max_iterations {
-                problem.apply(&p, None, &mut q);
-                let pq = dot(&p, &q);
+                let pq = problem.apply_dot(&p, &mut q);
                 // K is positive semi-definite and the load lies in its range, so a search
                 // direction of zero curvature means the discrete operator lost definiteness
                 // (or round-off dominates): stop instead of dividing by ~0.
