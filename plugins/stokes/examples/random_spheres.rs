@@ -60,10 +60,11 @@ fn main() {
             .and_then(|s| s.parse().ok())
             .unwrap_or(d)
     };
+    let d = CycleSettings::default();
     let cycle = CycleSettings {
-        sweeps: env("STOKES_SWEEPS", 1.0) as usize,
-        over_correction: env("STOKES_OC", CycleSettings::default().over_correction as f64) as f32,
-        coarsest_sweeps: env("STOKES_COARSEST", 20.0) as usize,
+        sweeps: env("STOKES_SWEEPS", d.sweeps as f64) as usize,
+        over_correction: env("STOKES_OC", d.over_correction as f64) as f32,
+        coarsest_sweeps: env("STOKES_COARSEST", d.coarsest_sweeps as f64) as usize,
     };
     let dims = Dims::new([n, n, n]);
     let fluid = random_spheres(n, solid, rf);

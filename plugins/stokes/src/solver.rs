@@ -205,9 +205,21 @@ where
                 }
             });
         let precond = |v: &[f32], z: &mut [f32]| {
-            for (a, h) in hier.iter_mut().enumerate() {
-                h.vcycle(&v[a * n..(a + 1) * n], &mut z[a * n..(a + 1) * n]);
-            }
+            // The four V-cycles are independent: run as concurrent tasks, the sequential
+            // coarse levels and the fork-join ends of one overlap with the parallel sweeps of
+            // another (each V-cycle's result does not depend on how it is scheduled).
+            let (vu, vp) = v.split_at(3 * n);
+            let (zu, zp) = z.split_at_mut(3 * n);
+            rayon::scope(|s| {
+                if let Some(dh) = darcy.as_mut() {
+                    s.spawn(move |_| dh.vcycle(vp, zp));
+                } else {
+                    zp.iter_mut().for_each(|v| *v = 0.0);
+                }
+                for ((h, vc), zc) in hier.iter_mut().zip(vu.chunks(n)).zip(zu.chunks_mut(n)) {
+                    s.spawn(move |_| h.vcycle(vc, zc));
+                }
+            });
             // Pressure block: S^{-1} ~ M_p^{-1} + (B W B^T)^{-1} (Cahouet & Chabard 1988 for
             // A = sigma I - Lap, where S^{-1} = I + sigma L_p^{-1} exactly in a periodic cell),
             // with the wall resistance of the pore space in place of sigma: W = diag(A^{-1} 1)
@@ -215,11 +227,6 @@ where
             // exact S^{-1} = I + 8 L^{-1}; in open pores W is large and the mass-matrix term
             // dominates. The identity alone lets the Darcy-like pressure modes across narrow
             // throats converge slowly (iterations growing with resolution).
-            if let Some(dh) = darcy.as_mut() {
-                dh.vcycle(&v[3 * n..], &mut z[3 * n..]);
-            } else {
-                z[3 * n..].iter_mut().for_each(|v| *v = 0.0);
-            }
             z[3 * n..]
                 .par_iter_mut()
                 .zip(v[3 * n..].par_iter())
