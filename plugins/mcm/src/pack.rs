@@ -536,7 +536,14 @@ fn contract_phases(
                 .anneal_steps
                 .min(sch.max_iterations.saturating_sub(st.iterations));
             let took = sys.anneal(steps, temperature, rng);
-            let mut a = sys.minimise(budget(&st).saturating_sub(took));
+            // The relaxation after a thermalisation gets a step's whole budget (the stall
+            // test still ends it early if it jams): it starts from a hot, overlapping state,
+            // and cut to what the Langevin steps left of one step (1000 of 3000) it often
+            // stopped just above the tolerance and the cycle was wasted.
+            let mut a = sys.minimise(
+                sch.step_iterations
+                    .min(sch.max_iterations.saturating_sub(st.iterations + took)),
+            );
             a.iterations += took;
             if a.converged {
                 st.record(s_new, &a, Outcome::Annealed);
