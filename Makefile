@@ -12,7 +12,7 @@ PIPE := $(CURDIR)/target/release/pipe
 DEMO_PIPELINES := pipelines/sandcore.yaml
 MORE_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clumps.yaml pipelines/mcm.yaml \
 	pipelines/binder.yaml pipelines/elasticity.yaml pipelines/permeability.yaml pipelines/sandcore-quick.yaml \
-	pipelines/sandcore-spheres.yaml pipelines/cemented2d.yaml
+	pipelines/sandcore-spheres.yaml pipelines/cemented2d.yaml pipelines/cemented3d.yaml
 
 .PHONY: all sysdeps pydeps build demo demo-all test lint rust-test interop python python-test docs-test bench readme-stages clean test-cluster
 

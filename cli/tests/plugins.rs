@@ -214,6 +214,23 @@ fn plugin_parameters_are_checked_with_locations() {
     );
     assert_eq!(code, 2, "{err}");
     assert!(err.contains("is not one of x, y, z"), "{err}");
+    // Two mistakes in one step: both reported in one run, each at its own key.
+    std::fs::write(
+        dir.path().join("p.yaml"),
+        yaml.replace("axes: y", "axes: y, pore_label: none"),
+    )
+    .unwrap();
+    let (code, _, err) = pipe(
+        &["validate", "p.yaml", "--plugin-dir", &plugins],
+        dir.path(),
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("p.yaml:14:13")
+            && err.contains("did you mean `axis`")
+            && err.contains("parameter `pore_label`: expected a number, got a string"),
+        "{err}"
+    );
 }
 
 #[test]

@@ -182,7 +182,7 @@ fn resolve_stages(
         let stage = reg.stage.clone();
         let p = stage.normalize_params(&serde_json::Value::Object(s.params.clone()));
         r.params.push(
-            p.map_err(|e| errs.push(stage_error(doc, i, &*stage, e)))
+            p.map_err(|e| errs.extend(stage_errors(doc, i, &*stage, e)))
                 .ok(),
         );
         r.origins.push(reg.origin.clone());
@@ -350,7 +350,8 @@ fn plan_exports(
     exports
 }
 
-/// The writer of an export: by `format:` or by extension, and it must accept the kind.
+/// The writer of an export: by `format:` or by extension, and it must accept the kind (among
+/// exporters sharing an extension, the one that accepts it).
 fn export_format(
     doc: &PipelineDoc,
     registry: &Registry,
@@ -369,7 +370,7 @@ fn export_format(
         list_or_none(&accepting)
     ));
     let loc = e.format_loc.unwrap_or(e.to_loc);
-    match registry.exporter_for(e.format.as_deref(), &e.to) {
+    match registry.exporter_for(e.format.as_deref(), &e.to, kind) {
         Some(x) if x.accepts(kind) => Some(x),
         Some(x) => {
             errs.push(
@@ -481,7 +482,7 @@ fn preflight_steps(
         let (pf, prepared) = match stage.preflight(params, &metas) {
             Ok(x) => x,
             Err(e) => {
-                errs.push(stage_error(doc, i, &**stage, e));
+                errs.extend(stage_errors(doc, i, &**stage, e));
                 continue;
             }
         };
@@ -705,7 +706,24 @@ fn list_or_none(names: &[&str]) -> String {
     }
 }
 
-/// Maps a stage's preflight error to the YAML place it concerns.
+/// Maps a stage's preflight error to the YAML places it concerns, one per parameter when it
+/// reports several.
+fn stage_errors(
+    doc: &PipelineDoc,
+    i: usize,
+    stage: &dyn Stage,
+    e: StageError,
+) -> Vec<PipelineError> {
+    match e {
+        StageError::Several(all) => all
+            .into_iter()
+            .flat_map(|e| stage_errors(doc, i, stage, e))
+            .collect(),
+        e => vec![stage_error(doc, i, stage, e)],
+    }
+}
+
+/// Maps one stage error to the YAML place it concerns.
 fn stage_error(doc: &PipelineDoc, i: usize, stage: &dyn Stage, e: StageError) -> PipelineError {
     let s = &doc.steps[i];
     let info = stage.info();

@@ -1036,6 +1036,20 @@ pub struct Provenance {
     pub entries: IndexMap<String, String>,
 }
 
+impl Provenance {
+    /// Entries whose values are unsigned integers (the 64-bit seeds): formats with numbers
+    /// write them as numbers, so a reader gets the seed exactly and as an integer.
+    pub const INTEGER_KEYS: [&'static str; 2] = ["seed", "stage_seed"];
+
+    /// The value of `key` as a number when it is one of [`Self::INTEGER_KEYS`] and parses.
+    pub fn integer(&self, key: &str) -> Option<u64> {
+        if !Self::INTEGER_KEYS.contains(&key) {
+            return None;
+        }
+        self.entries.get(key)?.parse().ok()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

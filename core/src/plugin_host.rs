@@ -350,6 +350,46 @@ pub struct ForeignStage {
 }
 
 impl ForeignStage {
+    /// One given parameter in canonical SI JSON: the key must be declared, a unit string
+    /// must have the declared dimension, and the JSON type must match the default's.
+    fn normalize_value(&self, k: &str, v: &Value) -> Result<Value, StageError> {
+        let spec = self
+            .info
+            .params
+            .iter()
+            .find(|p| p.name == k)
+            .ok_or_else(|| StageError::UnknownParam {
+                key: k.to_string(),
+                suggestion: crate::registry::closest(k, self.info.params.iter().map(|p| p.name)),
+            })?;
+        let mut v = v.clone();
+        let dimensional = !spec.unit.is_empty() && spec.unit != "1";
+        if dimensional {
+            if let Value::String(s) = &v {
+                let (_, want) = parse_unit(&spec.unit).map_err(|e| StageError::param(k, e))?;
+                let q = parse_quantity(s).map_err(|e| StageError::param(k, e))?;
+                if q.dim != want {
+                    return Err(StageError::param(
+                        k,
+                        format!(
+                            "`{s}` has dimension {} but this parameter takes {}",
+                            q.dim, spec.unit
+                        ),
+                    ));
+                }
+                v = json!(q.value);
+            }
+        }
+        let default = &self.defaults[k];
+        if !default.is_null() && json_type(default) != json_type(&v) {
+            return Err(StageError::param(
+                k,
+                format!("expected {}, got {}", json_type(default), json_type(&v)),
+            ));
+        }
+        Ok(v)
+    }
+
     fn new(vt: &'static GpPluginVTable, index: u32, m: MetaStage) -> Result<Self, String> {
         if !m.id.contains('.') {
             return Err(format!(
@@ -468,45 +508,20 @@ impl Stage for ForeignStage {
             .as_object()
             .ok_or_else(|| StageError::param("", "parameters must be a mapping"))?;
         let mut out = self.defaults.clone();
+        let mut errors = Vec::new();
         for (k, v) in given {
-            let spec = self
-                .info
-                .params
-                .iter()
-                .find(|p| p.name == k)
-                .ok_or_else(|| StageError::UnknownParam {
-                    key: k.clone(),
-                    suggestion: crate::registry::closest(
-                        k,
-                        self.info.params.iter().map(|p| p.name),
-                    ),
-                })?;
-            let mut v = v.clone();
-            let dimensional = !spec.unit.is_empty() && spec.unit != "1";
-            if dimensional {
-                if let Value::String(s) = &v {
-                    let (_, want) = parse_unit(&spec.unit).map_err(|e| StageError::param(k, e))?;
-                    let q = parse_quantity(s).map_err(|e| StageError::param(k, e))?;
-                    if q.dim != want {
-                        return Err(StageError::param(
-                            k,
-                            format!(
-                                "`{s}` has dimension {} but this parameter takes {}",
-                                q.dim, spec.unit
-                            ),
-                        ));
-                    }
-                    v = json!(q.value);
+            match self.normalize_value(k, v) {
+                Ok(v) => {
+                    out.insert(k.clone(), v);
                 }
+                Err(e) => errors.push(e),
             }
-            let default = &self.defaults[k];
-            if !default.is_null() && json_type(default) != json_type(&v) {
-                return Err(StageError::param(
-                    k,
-                    format!("expected {}, got {}", json_type(default), json_type(&v)),
-                ));
-            }
-            out.insert(k.clone(), v);
+        }
+        // Every bad key of the step at once, as for built-in stages.
+        match errors.len() {
+            0 => {}
+            1 => return Err(errors.remove(0)),
+            _ => return Err(StageError::Several(errors)),
         }
         Ok(Value::Object(out))
     }

@@ -145,18 +145,31 @@ impl Registry {
         &self.exporters
     }
 
-    /// The exporter for an explicit format name, or else for the path's extension.
-    pub fn exporter_for(&self, format: Option<&str>, path: &Path) -> Option<Arc<dyn Exporter>> {
-        match format {
-            Some(f) => self.exporters.iter().find(|e| e.name() == f).cloned(),
-            None => {
-                let ext = path.extension()?.to_str()?.to_ascii_lowercase();
-                self.exporters
-                    .iter()
-                    .find(|e| e.extensions().contains(&ext.as_str()))
-                    .cloned()
-            }
-        }
+    /// The exporter for an explicit format name, or else for the path's extension, preferring
+    /// one that accepts `kind`: several plugins may claim one extension (`png` for a contact
+    /// graph and for a table), and registration order must not decide which of them writes a
+    /// given artifact. When none of the matching exporters accepts `kind`, the first match is
+    /// returned, so the caller can say which format was picked and that it cannot hold the
+    /// artifact.
+    pub fn exporter_for(
+        &self,
+        format: Option<&str>,
+        path: &Path,
+        kind: ArtifactKind,
+    ) -> Option<Arc<dyn Exporter>> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(|e| e.to_ascii_lowercase());
+        let matches = |e: &Arc<dyn Exporter>| match format {
+            Some(f) => e.name() == f,
+            None => ext.as_deref().is_some_and(|x| e.extensions().contains(&x)),
+        };
+        self.exporters
+            .iter()
+            .find(|e| matches(e) && e.accepts(kind))
+            .or_else(|| self.exporters.iter().find(|e| matches(e)))
+            .cloned()
     }
 
     /// The closest known stage id, for "did you mean" messages.
@@ -164,12 +177,19 @@ impl Registry {
         closest(id, self.stages.keys().map(|s| s.as_str()))
     }
 
-    /// Checks every stage's self-description, so `pipe describe`, the JSON Schema and the
-    /// parameters a stage accepts cannot drift apart: ids of the form `<family>.<name>`;
+    /// Checks that export format names are unique, and every stage's self-description, so
+    /// `pipe describe`, the JSON Schema and the parameters a stage accepts cannot drift
+    /// apart: ids of the form `<family>.<name>`;
     /// parameter names unique, each documented, with a type in words (no Rust type names) and
     /// a unit that parses; the declared parameters are exactly the default struct's keys; the
     /// defaults normalize; port names unique.
     pub fn check_consistency(&self) -> Result<(), String> {
+        // `format:` selects by name, so a second exporter of one name could never be chosen.
+        for (n, e) in self.exporters.iter().enumerate() {
+            if self.exporters[..n].iter().any(|f| f.name() == e.name()) {
+                return Err(format!("export format `{}` is registered twice", e.name()));
+            }
+        }
         for r in self.stages.values() {
             let info = r.stage.info();
             let id = info.id;
@@ -241,5 +261,83 @@ impl Registry {
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An exporter that writes nothing, claiming `ext` for one artifact kind.
+    struct Fake(&'static str, &'static [&'static str], ArtifactKind);
+
+    impl Exporter for Fake {
+        fn name(&self) -> &'static str {
+            self.0
+        }
+        fn extensions(&self) -> &'static [&'static str] {
+            self.1
+        }
+        fn accepts(&self, kind: ArtifactKind) -> bool {
+            kind == self.2
+        }
+        fn doc(&self) -> &'static str {
+            "test"
+        }
+        fn write(
+            &self,
+            _: &Artifact,
+            _: &Path,
+            _: &Provenance,
+            _: &ExportOptions,
+        ) -> Result<(), String> {
+            Ok(())
+        }
+    }
+
+    fn two_png_exporters() -> Registry {
+        let mut r = Registry::new();
+        r.add_exporter(Fake("png", &["png"], ArtifactKind::ContactGraph));
+        r.add_exporter(Fake("pdf-png", &["png"], ArtifactKind::Table));
+        r
+    }
+
+    #[test]
+    fn extension_shared_by_two_exporters_is_resolved_by_artifact_kind() {
+        let r = two_png_exporters();
+        let p = Path::new("out/x.PNG");
+        let name = |k| r.exporter_for(None, p, k).map(|e| e.name());
+        assert_eq!(name(ArtifactKind::ContactGraph), Some("png"));
+        assert_eq!(name(ArtifactKind::Table), Some("pdf-png"));
+        // No taker: the first match, so the error can name the format that was picked.
+        assert_eq!(name(ArtifactKind::Field), Some("png"));
+        assert!(r
+            .exporter_for(None, Path::new("x.vti"), ArtifactKind::Table)
+            .is_none());
+        assert!(r
+            .exporter_for(None, Path::new("png"), ArtifactKind::Table)
+            .is_none());
+    }
+
+    #[test]
+    fn explicit_format_wins_over_extension_and_kind() {
+        let r = two_png_exporters();
+        let by = |f, k| {
+            r.exporter_for(Some(f), Path::new("x.dat"), k)
+                .map(|e| e.name())
+        };
+        assert_eq!(by("pdf-png", ArtifactKind::Table), Some("pdf-png"));
+        // The named format even when it cannot hold the kind (the caller reports it).
+        assert_eq!(by("png", ArtifactKind::Table), Some("png"));
+        assert_eq!(by("tiff", ArtifactKind::Table), None);
+    }
+
+    #[test]
+    fn duplicate_export_format_names_are_inconsistent() {
+        let mut r = two_png_exporters();
+        assert!(r.check_consistency().is_ok());
+        r.add_exporter(Fake("png", &["png"], ArtifactKind::Field));
+        let e = r.check_consistency().unwrap_err();
+        assert!(e.contains("`png` is registered twice"), "{e}");
     }
 }

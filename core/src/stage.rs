@@ -149,6 +149,10 @@ pub enum StageError {
     Cancelled,
     #[error("I/O: {0}")]
     Io(#[from] std::io::Error),
+    /// Several parameter errors of one step, reported together so a user fixes them in one
+    /// pass instead of one run per mistake.
+    #[error("{}", .0.iter().map(|e| e.to_string()).collect::<Vec<_>>().join("; "))]
+    Several(Vec<StageError>),
 }
 
 impl StageError {
@@ -370,17 +374,29 @@ impl<T: TypedStage> Typed<T> {
     /// gives a flattened group the defaults of the stage that includes it: serde would take
     /// the group's own `Default` for keys missing inside a flattened field.
     fn parse(&self, params: &serde_json::Value) -> Result<T::Params, StageError> {
-        if let Some(u) = unknown_keys(params, &self.info.params).into_iter().next() {
-            return Err(StageError::UnknownParam {
-                key: u.key,
-                suggestion: u.suggestion,
-            });
-        }
         let given = match params {
             serde_json::Value::Object(m) => m,
             serde_json::Value::Null => &serde_json::Map::new(),
             _ => return Err(StageError::param("", "parameters must be a mapping")),
         };
+        // Every unknown key and every value that fails on its own, in the order written.
+        let unknown = unknown_keys(params, &self.info.params);
+        let mut errors: Vec<StageError> = Vec::new();
+        for (k, v) in given {
+            if let Some(u) = unknown.iter().find(|u| &u.key == k) {
+                errors.push(StageError::UnknownParam {
+                    key: u.key.clone(),
+                    suggestion: u.suggestion.clone(),
+                });
+            } else if let Some(Err((key, message))) = T::Params::check_value(k, v) {
+                errors.push(StageError::InvalidParam { key, message });
+            }
+        }
+        match errors.len() {
+            0 => {}
+            1 => return Err(errors.remove(0)),
+            _ => return Err(StageError::Several(errors)),
+        }
         let mut full = self.defaults.clone();
         for (k, v) in given {
             full.insert(k.clone(), v.clone());

@@ -361,6 +361,23 @@ fn overrides_change_parameters_and_unknown_params_are_located() {
 }
 
 #[test]
+fn every_bad_parameter_of_a_step_is_reported_at_once() {
+    // An unknown key, a wrong type and a wrong type inside a flattened group, on lines 5-7.
+    let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with:\n      nn: 3\n      n: lots\n      fail: maybe\n");
+    let e = plan(&d, &registry(), &PlanOptions::default())
+        .err()
+        .unwrap();
+    let all: Vec<_> = e.all().collect();
+    assert_eq!(all.len(), 3, "{e}");
+    assert!(all[0].message.contains("unknown parameter `nn`"), "{e}");
+    assert_eq!(all[0].help.as_deref(), Some("did you mean `n`?"));
+    assert!(all[1].message.contains("parameter `n`"), "{e}");
+    assert!(all[2].message.contains("parameter `fail`"), "{e}");
+    let lines: Vec<u64> = all.iter().map(|x| x.loc.unwrap().line).collect();
+    assert_eq!(lines, [6, 7, 8]);
+}
+
+#[test]
 fn preflight_errors_and_memory_limit_stop_before_running() {
     let d = doc("name: t\nstages:\n  - id: s\n    use: test.source\n    with: {n: 0}\n");
     let e = plan(&d, &registry(), &PlanOptions::default())

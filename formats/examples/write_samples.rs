@@ -213,7 +213,7 @@ fn main() -> Result<(), String> {
     let write = |a: &Artifact, name: &str| -> Result<(), String> {
         let path = dir.join(name);
         let e = reg
-            .exporter_for(None, &path)
+            .exporter_for(None, &path, a.kind())
             .ok_or_else(|| format!("no exporter for {name}"))?;
         if !e.accepts(a.kind()) {
             return Err(format!("{} does not take {}", e.name(), a.kind()));

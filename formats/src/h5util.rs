@@ -150,16 +150,13 @@ pub(crate) fn read_strings(g: &Group, name: &str) -> H5Result<Vec<String>> {
         .collect())
 }
 
-/// Provenance entries whose values are unsigned integers: written as u64 attributes, so
-/// `f.attrs["seed"]` is a number in h5py and the 64-bit seeds survive exactly.
-pub(crate) const INTEGER_PROVENANCE: [&str; 2] = ["seed", "stage_seed"];
-
-/// Provenance entries as attributes of `loc`: the seeds as u64, the rest as strings.
+/// Provenance entries as attributes of `loc`: the seeds as u64 (so `f.attrs["seed"]` is a
+/// number in h5py and 64-bit seeds survive exactly), the rest as strings.
 pub(crate) fn provenance_attrs(loc: &Location, prov: &grainpipe_core::Provenance) -> H5Result<()> {
     for (k, v) in &prov.entries {
-        match v.parse::<u64>() {
-            Ok(n) if INTEGER_PROVENANCE.contains(&k.as_str()) => attr_scalar(loc, k, n)?,
-            _ => attr_str(loc, k, v)?,
+        match prov.integer(k) {
+            Some(n) => attr_scalar(loc, k, n)?,
+            None => attr_str(loc, k, v)?,
         }
     }
     Ok(())

@@ -92,12 +92,10 @@ fn write_inner(v: VolumeRef, tmp: &Path, prov: &Provenance, deflate: u8) -> NcRe
     f.add_attribute("periodic", g.periodic.map(|b| b as u8).to_vec())
         .map_err(nc)?;
     for (k, val) in &prov.entries {
-        match val.parse::<u64>() {
+        match prov.integer(k) {
             // NC_UINT64, so `ds.seed` is a number in netCDF4-python and 64-bit seeds stay exact.
-            Ok(n) if crate::h5util::INTEGER_PROVENANCE.contains(&k.as_str()) => {
-                f.add_attribute(&nc_name(k), n).map_err(nc)?
-            }
-            _ => f.add_attribute(&nc_name(k), val.as_str()).map_err(nc)?,
+            Some(n) => f.add_attribute(&nc_name(k), n).map_err(nc)?,
+            None => f.add_attribute(&nc_name(k), val.as_str()).map_err(nc)?,
         };
     }
     for (name, n) in [("z", nz), ("y", ny), ("x", nx)] {

@@ -294,7 +294,7 @@ fn exporters_declare_and_check_their_options() {
     };
     for name in ["h5", "vtkhdf", "nc"] {
         let e = r
-            .exporter_for(Some(name), Path::new("x"))
+            .exporter_for(Some(name), Path::new("x"), ArtifactKind::PhaseImage)
             .unwrap_or_else(|| panic!("{name}"));
         let declared = e.options();
         assert_eq!(declared.len(), 1, "{name}");
@@ -315,7 +315,9 @@ fn exporters_declare_and_check_their_options() {
             assert!(msg.contains("0 (off) to 9"), "{msg}");
         }
     }
-    let vtp = r.exporter_for(Some("vtp"), Path::new("x")).unwrap();
+    let vtp = r
+        .exporter_for(Some("vtp"), Path::new("x"), ArtifactKind::Packing)
+        .unwrap();
     assert_eq!(vtp.options()[0].default, serde_json::json!("as_is"));
     let (key, msg) = vtp
         .check_options(&opts(&[("periodic", serde_json::json!("fold"))]))
@@ -325,7 +327,9 @@ fn exporters_declare_and_check_their_options() {
     // The engine's path: write_with with `compression: 0` gives the uncompressed size.
     let d = tempfile::tempdir().unwrap();
     let a = Artifact::PhaseImage(ball_image());
-    let h5 = r.exporter_for(Some("h5"), Path::new("x")).unwrap();
+    let h5 = r
+        .exporter_for(Some("h5"), Path::new("x"), a.kind())
+        .unwrap();
     let (p0, p4) = (d.path().join("0.h5"), d.path().join("4.h5"));
     h5.write(
         &a,

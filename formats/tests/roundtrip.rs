@@ -629,7 +629,7 @@ fn failed_write_leaves_no_file() {
 fn write_via_registry(a: &Artifact, p: &Path) -> Result<(), String> {
     let mut r = Registry::new();
     register(&mut r);
-    r.exporter_for(None, p)
+    r.exporter_for(None, p, a.kind())
         .expect("exporter")
         .write_defaults(a, p, &prov())
 }
@@ -650,7 +650,7 @@ fn registry_has_every_exporter_and_consistent_stages() {
         ("json", ArtifactKind::ContactGraph),
     ] {
         let e = r
-            .exporter_for(None, Path::new(&format!("x.{ext}")))
+            .exporter_for(None, Path::new(&format!("x.{ext}")), kind)
             .unwrap_or_else(|| panic!("no exporter for .{ext}"));
         assert!(e.accepts(kind), "{ext} should take {kind}");
     }

@@ -106,15 +106,39 @@ pub struct PhaseStats {
     pub excess_kurtosis: f64,
     /// Tail exponent s of pdf ~ exp(-s x); None when fewer than 3 bins qualify.
     pub tail_exponent: Option<f64>,
+    /// ln pdf of the tail fit extrapolated to x = 0; NaN without a fit.
+    pub tail_intercept: f64,
     pub tail_bins: usize,
     pub tail_r2: f64,
     pub outside: usize,
     /// PDF per bin.
     pub pdf: Vec<f64>,
+    /// The tail fit exp(a - s x) per bin with x >= tail_from, NaN elsewhere and without a fit.
+    pub fit_pdf: Vec<f64>,
+}
+
+/// The exponential-tail fit ln pdf = a - s x of one phase.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TailFit {
+    /// s; None when fewer than 3 bins qualify.
+    pub exponent: Option<f64>,
+    /// a = ln pdf extrapolated to x = 0 (NaN without a fit).
+    pub intercept: f64,
+    pub r2: f64,
+    pub bins: usize,
+}
+
+impl TailFit {
+    /// The fitted pdf at x, NaN without a fit.
+    pub fn at(&self, x: f64) -> f64 {
+        self.exponent
+            .map(|s| (self.intercept - s * x).exp())
+            .unwrap_or(f64::NAN)
+    }
 }
 
 /// Weighted least squares of ln(pdf) = a - s x over the tail bins (weights = counts: the
-/// variance of ln(count) is about 1/count). Returns (s, r^2, bins used).
+/// variance of ln(count) is about 1/count).
 pub fn tail_fit(
     centres: &[f64],
     counts: &[u64],
@@ -122,15 +146,21 @@ pub fn tail_fit(
     total: usize,
     from: f64,
     min_count: usize,
-) -> (Option<f64>, f64, usize) {
+) -> TailFit {
     let mut pts = Vec::new();
     for (&x, &c) in centres.iter().zip(counts) {
         if x >= from && c as usize >= min_count {
             pts.push((x, (c as f64 / (total as f64 * width)).ln(), c as f64));
         }
     }
+    let none = TailFit {
+        exponent: None,
+        intercept: f64::NAN,
+        r2: 0.0,
+        bins: pts.len(),
+    };
     if pts.len() < 3 {
-        return (None, 0.0, pts.len());
+        return none;
     }
     let sw: f64 = pts.iter().map(|p| p.2).sum();
     let mx = pts.iter().map(|p| p.2 * p.0).sum::<f64>() / sw;
@@ -139,7 +169,7 @@ pub fn tail_fit(
     let sxy: f64 = pts.iter().map(|p| p.2 * (p.0 - mx) * (p.1 - my)).sum();
     let syy: f64 = pts.iter().map(|p| p.2 * (p.1 - my).powi(2)).sum();
     if sxx <= 0.0 {
-        return (None, 0.0, pts.len());
+        return none;
     }
     let slope = sxy / sxx;
     let r2 = if syy > 0.0 {
@@ -147,7 +177,12 @@ pub fn tail_fit(
     } else {
         1.0
     };
-    (Some(-slope), r2, pts.len())
+    TailFit {
+        exponent: Some(-slope),
+        intercept: my - slope * mx,
+        r2,
+        bins: pts.len(),
+    }
 }
 
 /// The per-phase statistics of stress component `comp` of `stress` over `image`.
@@ -259,7 +294,7 @@ pub fn analyse(
         }
         // Normalised over all nodes of the phase, so mass outside the range is missing.
         let pdf = counts.iter().map(|&c| c as f64 / (nx * width)).collect();
-        let (s, r2, used) = tail_fit(
+        let fit = tail_fit(
             &centres,
             &counts,
             width,
@@ -267,6 +302,17 @@ pub fn analyse(
             p.tail_from,
             p.tail_min_count,
         );
+        // The line over the bins it was fitted to (x >= tail_from), for plots.
+        let fit_pdf = centres
+            .iter()
+            .map(|&c| {
+                if c >= p.tail_from {
+                    fit.at(c)
+                } else {
+                    f64::NAN
+                }
+            })
+            .collect();
         out.push(PhaseStats {
             name: name_of(l),
             label: l,
@@ -275,11 +321,13 @@ pub fn analyse(
             mean_x: mx,
             variance: m2,
             excess_kurtosis: kurt,
-            tail_exponent: s,
-            tail_bins: used,
-            tail_r2: r2,
+            tail_exponent: fit.exponent,
+            tail_intercept: fit.intercept,
+            tail_bins: fit.bins,
+            tail_r2: fit.r2,
             outside,
             pdf,
+            fit_pdf,
         });
     }
     if out.is_empty() {
@@ -333,8 +381,9 @@ impl TypedStage for StressStats {
             PortSpec::new(
                 "pdf",
                 ArtifactKind::Table,
-                "x (bin centre of sigma / mean) and one column pdf_<phase> per phase; plot \
-                 with a log y axis to see the exponential tails",
+                "x (bin centre of sigma / mean), one column pdf_<phase> per phase, then one \
+                 column fit_<phase> per phase (the tail fit exp(a - s x) for x >= tail_from, \
+                 NaN elsewhere); export to .png for the plot with a log y axis (pdf-png)",
             ),
         ])
     }
@@ -422,6 +471,9 @@ impl TypedStage for StressStats {
         let mut pdf = Table::new("stress_pdf").with_f64("x", "1", centres);
         for s in &stats {
             pdf = pdf.with_f64(&format!("pdf_{}", s.name), "1", s.pdf.clone());
+        }
+        for s in &stats {
+            pdf = pdf.with_f64(&format!("fit_{}", s.name), "1", s.fit_pdf.clone());
         }
         let mut out = Outputs::new();
         out.insert("stats".into(), Artifact::Table(table));

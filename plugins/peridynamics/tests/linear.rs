@@ -1,5 +1,5 @@
 //! Linear-elastic checks against independent references: the lattice sum for a homogeneous
-//! plate and the Voigt / Reuss mixture values for laminates.
+//! plate (2-D) and block (3-D) and the Voigt / Reuss mixture values for laminates.
 
 mod common;
 use common::*;
@@ -84,6 +84,97 @@ fn homogeneous_plate_bulk_stress_matches_the_lattice_modulus() {
         edge / syy_mean < 0.95,
         "no surface softening seen: {}",
         edge / syy_mean
+    );
+}
+
+/// Homogeneous 3-D block in uniaxial tension along y (sliding grips, four free sides), c =
+/// 18K / (pi h^4): in the bulk (two horizons from every face) sigma_yy equals the lattice
+/// value C11 eps_yy + C12 (eps_xx + eps_zz) of the local strains within 1 %, the lateral
+/// stresses vanish, and the lateral contraction is the lattice's C12 / (C11 + C12) (1/4 in
+/// the continuum). Prints the surface effect (docs/stages/peridynamics.md).
+#[test]
+fn homogeneous_cube_bulk_stress_matches_the_lattice_modulus() {
+    let d = [22, 26, 22];
+    let img = image3(d, vec![3; d[0] * d[1] * d[2]]);
+    let p = plate_params();
+    let r = run(&p, &img);
+    let (c11, c12) = lattice_c3(3.0);
+    // Uniaxial stress of a cubic lattice: E_lat = C11 - 2 C12^2 / (C11 + C12).
+    let e_lat = (c11 - 2.0 * c12 * c12 / (c11 + c12)) * E;
+    let nu_lat = c12 / (c11 + c12);
+    let m = 6; // two horizons
+    let (mut worst, mut lateral, mut syy_mean, mut cnt) = (0f64, 0f64, 0.0, 0.0);
+    for z in m..d[2] - m {
+        for y in m..d[1] - m {
+            for x in m..d[0] - m {
+                // Local strains by central differences of the displacement.
+                let e = |a: usize| {
+                    let (mut lo, mut hi) = ([x, y, z], [x, y, z]);
+                    lo[a] -= 1;
+                    hi[a] += 1;
+                    (u3(&r, d, hi, a) - u3(&r, d, lo, a)) / (2.0 * DX)
+                };
+                let (exx, eyy, ezz) = (e(0), e(1), e(2));
+                let expect = (c11 * eyy + c12 * (exx + ezz)) * E;
+                let syy = s3(&r, d, [x, y, z], 1);
+                worst = worst.max((syy / expect - 1.0).abs());
+                for c in [0, 2] {
+                    lateral = lateral.max(s3(&r, d, [x, y, z], c).abs() / syy.abs());
+                }
+                syy_mean += syy;
+                cnt += 1.0;
+            }
+        }
+    }
+    syy_mean /= cnt;
+    assert!(
+        worst < 0.01,
+        "bulk sigma_yy off the lattice value by {worst:.4}"
+    );
+    assert!(
+        lateral < 0.01,
+        "bulk sigma_xx, sigma_zz / sigma_yy up to {lateral:.4}"
+    );
+    let (cx, cz) = (d[0] / 2, d[2] / 2);
+    let eyy = (u3(&r, d, [cx, d[1] - 1 - m, cz], 1) - u3(&r, d, [cx, m, cz], 1))
+        / ((d[1] - 1 - 2 * m) as f64 * DX);
+    let nu = |a: usize| {
+        let (mut lo, mut hi) = ([cx, d[1] / 2, cz], [cx, d[1] / 2, cz]);
+        lo[a] = m;
+        hi[a] = d[a] - 1 - m;
+        -(u3(&r, d, hi, a) - u3(&r, d, lo, a)) / ((hi[a] - lo[a]) as f64 * DX) / eyy
+    };
+    let (nu_x, nu_z) = (nu(0), nu(2));
+    for v in [nu_x, nu_z] {
+        assert!((v - nu_lat).abs() < 0.01, "nu = {v}, lattice {nu_lat}");
+    }
+    assert!(
+        (syy_mean / (e_lat * eyy) - 1.0).abs() < 0.01,
+        "bulk mean stress / (E_lat eps) = {}",
+        syy_mean / (e_lat * eyy)
+    );
+    // Surface effect: the middle of a free face and a free edge (column along y) carry less.
+    let face_mean = |pick: &dyn Fn(usize) -> [usize; 3], n: usize| {
+        (0..n).map(|k| s3(&r, d, pick(k), 1)).sum::<f64>() / n as f64
+    };
+    let (ny_b, nz_b) = (d[1] - 2 * m, d[2] - 2 * m);
+    let face = face_mean(&|k| [0, m + k % ny_b, m + k / ny_b], ny_b * nz_b) / syy_mean;
+    let edge = face_mean(&|k| [0, m + k, 0], ny_b) / syy_mean;
+    let apparent = col_f64(&r.report, "effective_modulus") / e_lat;
+    println!(
+        "3-D lattice: C11 = {c11:.4} E, C12 = {c12:.4} E (continuum 1.2, 0.4), E_lat = {:.4} \
+         E, nu_lat = {nu_lat:.4} (measured {nu_x:.4}, {nu_z:.4}); bulk worst {worst:.2e}, \
+         lateral {lateral:.2e}; free face / bulk = {face:.3}, free edge / bulk = {edge:.3}; \
+         apparent modulus of the {}x{}x{} block / E_lat = {apparent:.4}",
+        e_lat / E,
+        d[0],
+        d[1],
+        d[2]
+    );
+    assert!(face < 0.95, "no surface softening seen: {face}");
+    assert!(
+        edge < face,
+        "an edge should be softer than a face: {edge} vs {face}"
     );
 }
 

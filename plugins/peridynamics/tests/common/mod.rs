@@ -41,6 +41,13 @@ pub fn image(nx: usize, ny: usize, labels: Vec<u8>) -> PhaseImage {
     }
 }
 
+/// A 3-D image (cubic voxels of edge DX) with the sample chain's phases.
+pub fn image3(dims: [usize; 3], labels: Vec<u8>) -> PhaseImage {
+    let mut img = image(dims[0], dims[1] * dims[2], labels);
+    img.grid.dims = dims;
+    img
+}
+
 pub fn matrix_material(e: f64) -> PhaseMaterial {
     PhaseMaterial {
         role: PhaseRole::Matrix,
@@ -99,6 +106,41 @@ pub fn lattice_c(h: f64) -> (f64, f64) {
         }
     }
     (0.5 * k * c11, 0.5 * k * c12)
+}
+
+/// Lattice stiffness of a homogeneous 3-D body (scaled by E): the stencil sum
+/// C_abcd = (c dx^4 / 2) sum_j m_a m_b m_c m_d / |m|^3 over integer offsets m within the
+/// horizon, with c = 18K / (pi h^4), K = E / (3 (1 - 2 nu)), nu = 1/4, so c dx^4 = 12 E / (pi H^4)
+/// for H = h / dx. (The integral over the ball gives C11 = 6/5 E, C12 = 2/5 E.) Returns
+/// (C11, C12) / E.
+pub fn lattice_c3(h: f64) -> (f64, f64) {
+    let k = 12.0 / (std::f64::consts::PI * h.powi(4));
+    let r = h.floor() as i32;
+    let (mut c11, mut c12) = (0.0, 0.0);
+    for z in -r..=r {
+        for y in -r..=r {
+            for x in -r..=r {
+                let l2 = (x * x + y * y + z * z) as f64;
+                if l2 == 0.0 || l2 > h * h * (1.0 + 1e-9) {
+                    continue;
+                }
+                let l3 = l2.powf(1.5);
+                c11 += (x as f64).powi(4) / l3;
+                c12 += (x as f64).powi(2) * (y as f64).powi(2) / l3;
+            }
+        }
+    }
+    (0.5 * k * c11, 0.5 * k * c12)
+}
+
+/// Component `c` of the 3-D stress (xx, yy, zz, yz, xz, xy) at node (x, y, z).
+pub fn s3(r: &RunResult, d: [usize; 3], [x, y, z]: [usize; 3], c: usize) -> f64 {
+    r.stress[(x + d[0] * (y + d[1] * z)) * 6 + c] as f64
+}
+
+/// Component `c` of the 3-D displacement at node (x, y, z).
+pub fn u3(r: &RunResult, d: [usize; 3], [x, y, z]: [usize; 3], c: usize) -> f64 {
+    r.displacement[(x + d[0] * (y + d[1] * z)) * 3 + c] as f64
 }
 
 /// Component `c` of the 2-D stress (xx, yy, xy) at node (x, y).
