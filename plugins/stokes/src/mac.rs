@@ -289,6 +289,27 @@ impl Stokes<'_> {
     /// order of [`Dims::neighbours`].
     #[inline]
     pub fn row_at(&self, v: &[f32], block: usize, i: usize, nb: &[usize; 6]) -> f32 {
+        self.row_of::<true>(v, block, i, nb)
+    }
+
+    /// [`Stokes::row_at`] for a `v` that is zero off the unknowns (inactive faces, solid
+    /// pressures), as every preconditioned vector is: the neighbour sum needs no mask tests
+    /// (adding the zeros is exact), the same value.
+    #[inline(always)]
+    fn row_at_zero_off(&self, v: &[f32], block: usize, i: usize, nb: &[usize; 6]) -> f32 {
+        self.row_of::<false>(v, block, i, nb)
+    }
+
+    /// The row, testing each velocity neighbour's mask bit only when `MASK_TESTS` (a `v`
+    /// that may be non-zero on inactive faces).
+    #[inline(always)]
+    fn row_of<const MASK_TESTS: bool>(
+        &self,
+        v: &[f32],
+        block: usize,
+        i: usize,
+        nb: &[usize; 6],
+    ) -> f32 {
         let n = self.dims.len();
         let m = self.mask[i];
         if block < 3 {
@@ -300,7 +321,7 @@ impl Stokes<'_> {
             let u = &v[a * n..(a + 1) * n];
             let mut sum = 0.0f32;
             for (k, &j) in nb.iter().enumerate() {
-                if self.dims.n[k / 2] > 1 && self.mask[j] & bit != 0 {
+                if self.dims.n[k / 2] > 1 && (!MASK_TESTS || self.mask[j] & bit != 0) {
                     sum += u[j];
                 }
             }
@@ -311,39 +332,6 @@ impl Stokes<'_> {
                 return 0.0;
             }
             // -div u: the inactive faces hold zeros.
-            let mut div = 0.0f32;
-            for a in 0..3 {
-                div += v[a * n + i] - v[a * n + nb[2 * a]];
-            }
-            -div
-        }
-    }
-
-    /// [`Stokes::row_at`] for a `v` that is zero off the unknowns (inactive faces, solid
-    /// pressures), as every preconditioned vector is: the neighbour sum needs no mask tests
-    /// (adding the zeros is exact), the same value.
-    #[inline(always)]
-    fn row_at_zero_off(&self, v: &[f32], block: usize, i: usize, nb: &[usize; 6]) -> f32 {
-        let n = self.dims.len();
-        let m = self.mask[i];
-        if block < 3 {
-            let a = block;
-            if m & active_bit(a) == 0 {
-                return 0.0;
-            }
-            let u = &v[a * n..(a + 1) * n];
-            let mut sum = 0.0f32;
-            for (k, &j) in nb.iter().enumerate() {
-                if self.dims.n[k / 2] > 1 {
-                    sum += u[j];
-                }
-            }
-            let p = &v[3 * n..];
-            self.diag[a * n + i] as f32 * u[i] - sum + (p[nb[2 * a + 1]] - p[i])
-        } else {
-            if m & FLUID == 0 {
-                return 0.0;
-            }
             let mut div = 0.0f32;
             for a in 0..3 {
                 div += v[a * n + i] - v[a * n + nb[2 * a]];
