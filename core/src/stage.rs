@@ -405,21 +405,15 @@ impl<T: TypedStage> Typed<T> {
         serde_path_to_error::deserialize(&full).map_err(|e| {
             let path = e.path().to_string();
             let message = e.into_inner().to_string();
-            if !(path == "." || path.is_empty()) {
-                return StageError::InvalidParam { key: path, message };
-            }
-            // Inside a flattened group serde loses the path: find the value that fails alone.
-            let located = full.as_object().and_then(|m| {
-                m.iter()
-                    .find_map(|(k, v)| T::Params::check_value(k, v).and_then(Result::err))
-            });
-            match located {
-                Some((key, message)) => StageError::InvalidParam { key, message },
-                None => StageError::InvalidParam {
-                    key: unknown_field_name(&message).unwrap_or_default(),
-                    message,
-                },
-            }
+            // Every given value already deserialized alone above (which is also what locates
+            // an error inside a flattened group, where serde loses the path), and the rest
+            // are this stage's defaults: what fails here is the mapping as a whole.
+            let key = if path == "." || path.is_empty() {
+                unknown_field_name(&message).unwrap_or_default()
+            } else {
+                path
+            };
+            StageError::InvalidParam { key, message }
         })
     }
 }
