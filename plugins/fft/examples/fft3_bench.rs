@@ -69,6 +69,12 @@ fn main() {
     let repeats: usize = a.get(2).map(|s| s.parse().unwrap()).unwrap_or(5);
     ffts::<f64>(n, repeats, "f64");
     ffts::<f32>(n, repeats, "f32");
+    parts::<f64>(n, repeats, "f64");
+    parts::<f32>(n, repeats, "f32");
+}
+
+/// Times the parts of one staggered CG iteration in precision `T`.
+fn parts<T: Real>(n: usize, repeats: usize, name: &str) {
     // A three-phase image of pseudo-random labels; the cost of one CG iteration does not
     // depend on the microstructure.
     let len = n * n * n;
@@ -78,7 +84,7 @@ fn main() {
     let mut mats = [Iso::ZERO; 256];
     mats[1] = Iso::from_e_nu(66.9e9, 0.25);
     mats[2] = Iso::from_e_nu(43e9, 0.17);
-    let mut p = Elastic::<f64>::new(
+    let mut p = Elastic::<T>::new(
         [n; 3],
         [4e-6; 3],
         labels,
@@ -86,16 +92,23 @@ fn main() {
         Scheme::Staggered,
         Iso::from_e_nu(55e9, 0.2),
     );
-    let u: Vec<f64> = (0..3 * len).map(|i| (i as f64 * 0.11).sin()).collect();
-    let mut q = vec![0.0; 3 * len];
-    let mut z = vec![0.0; 3 * len];
+    let u: Vec<T> = (0..3 * len)
+        .map(|i| T::of((i as f64 * 0.11).sin()))
+        .collect();
+    let mut q = vec![T::zero(); 3 * len];
+    let mut z = vec![T::zero(); 3 * len];
     let apply = best(repeats, || p.apply(&u, None, &mut q));
     let pre = best(repeats, || p.precondition(&u, &mut z));
+    let mut r = u.clone();
+    let fused = best(repeats, || {
+        p.precondition_dot(Some((0.0, &q)), &mut r, &mut z);
+    });
     let mut s = 0.0;
     let d = best(repeats, || s += dot(&u, &q));
     println!(
-        "staggered f64, parts of one CG iteration (wall min / cpu mean): apply {:.4} / {:.4} \
-         s, precondition {:.4} / {:.4} s, one dot product {:.4} / {:.4} s ({s:.1e})",
-        apply.0, apply.1, pre.0, pre.1, d.0, d.1
+        "staggered {name}, parts of one CG iteration (wall min / cpu mean): apply {:.4} / {:.4} \
+         s, precondition {:.4} / {:.4} s, precondition with r -= a q and r . z {:.4} / {:.4} s, \
+         one dot product {:.4} / {:.4} s ({s:.1e})",
+        apply.0, apply.1, pre.0, pre.1, fused.0, fused.1, d.0, d.1
     );
 }

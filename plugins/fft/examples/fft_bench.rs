@@ -153,6 +153,10 @@ fn main() {
             for row in r.stiffness {
                 println!("{}", row.map(|v| format!("{v:12.5e}")).join(" "));
             }
+            // All digits, on stderr: bit-for-bit comparisons between builds.
+            for row in r.stiffness {
+                eprintln!("  {}", row.map(|v| format!("{v:?}")).join(" "));
+            }
             let e = grainpipe_fft::kernel::constants::engineering(
                 &grainpipe_fft::kernel::constants::symmetrize(&r.stiffness),
             );

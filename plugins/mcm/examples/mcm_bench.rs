@@ -8,7 +8,7 @@
 //!   see `family_library`) or spheres (lognormal, median radius 70 um, D50 = 140 um, radii
 //!   40-120 um).
 //! Env MCM_CASES="layers:size_um,..." overrides the cases (default: Table 4, then Table 5);
-//! MCM_PHI (0.5), MCM_GAP (8e-6 m), MCM_TOL (1e-2), MCM_STEP (3000), MCM_STEPS (30),
+//! MCM_PHI (0.5), MCM_GAP (8e-6 m), MCM_TOL (1e-3, the stage's default), MCM_STEP (3000), MCM_STEPS (30),
 //! MCM_BETA (3) override the fraction, gap, tolerance, iterations per contraction step,
 //! contraction steps and beta; MCM_PERIODIC_Z=0 gives a free surface above each new layer;
 //! MCM_ENERGY (all_pairs | max_pair) and MCM_MINIMISER (fire | gradient_descent) pick the
@@ -81,6 +81,18 @@ fn family_library(family: &str) -> ClumpLibrary {
         .clone()
 }
 
+/// With MCM_VERBOSE=1: the stage's messages (failed tries and their causes) on stderr.
+struct Warnings;
+impl grainpipe_core::stage::Reporter for Warnings {
+    fn progress(&self, _: u64, _: u64) {}
+    fn message(&self, _: grainpipe_core::stage::Level, text: &str) {
+        eprintln!("  {text}");
+    }
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
+
 fn env(key: &str, default: f64) -> f64 {
     std::env::var(key)
         .ok()
@@ -133,7 +145,7 @@ fn main() {
                 "layers": layers, "layer_size": [size * 1e-6, size * 1e-6],
                 "layer_thickness": 280e-6, "volume_fraction": env("MCM_PHI", 0.5), "min_gap": env("MCM_GAP", 8e-6),
                 "radius": {"kind": "lognormal", "median": "70 um", "sigma": 0.2, "min": "40 um", "max": "120 um"},
-                "tolerance": env("MCM_TOL", 1e-2),
+                "tolerance": env("MCM_TOL", 1e-3),
                 "contraction_steps": env("MCM_STEPS", 30.0) as usize,
                 "beta": env("MCM_BETA", 3.0),
                 "step_iterations": env("MCM_STEP", 3000.0) as usize,
@@ -163,13 +175,11 @@ fn main() {
                 );
             }
             let t0 = Instant::now();
+            let verbose = env("MCM_VERBOSE", 0.0) != 0.0;
+            let reporter: &dyn grainpipe_core::stage::Reporter =
+                if verbose { &Warnings } else { &SilentReporter };
             let r = Stacked.preflight(&p, &metas).and_then(|pf| {
-                Stacked.run(
-                    &p,
-                    &pf.plan,
-                    &inputs,
-                    &RunContext::new(seed, &SilentReporter),
-                )
+                Stacked.run(&p, &pf.plan, &inputs, &RunContext::new(seed, reporter))
             });
             let dt = t0.elapsed().as_secs_f64();
             match r {

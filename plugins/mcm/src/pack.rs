@@ -111,22 +111,63 @@ impl Source<'_> {
 /// Random initial positions tried per grain before the least overlapping one is kept.
 pub const PLACE_ATTEMPTS: usize = 200;
 
+/// How a placement draws a grain's orientation: `flat_draws` uniform random rotations, of
+/// which the one with the smallest extent along z is kept. 1 is the uniform (isotropic)
+/// draw of the paper; more draws bias the grains towards lying flat, as a recoater leaves
+/// them. A layer contracted along z jams on grains that stand upright (an elongated grain
+/// nearly as long as the layer is thick leaves no room above or below it), so the
+/// retries of a stacked layer and the relocation of a wedged grain draw flatter
+/// orientations (see `contract` and `mcm.stacked`).
+pub fn draw_orientation(
+    shape: &Shape,
+    rng: &mut ChaCha8Rng,
+    flat_draws: usize,
+) -> UnitQuaternion<f64> {
+    let mut best = quat(random_quaternion(rng));
+    if flat_draws <= 1 {
+        return best;
+    }
+    let mut lowest = z_extent(shape, &best);
+    for _ in 1..flat_draws {
+        let q = quat(random_quaternion(rng));
+        let h = z_extent(shape, &q);
+        if h < lowest {
+            (best, lowest) = (q, h);
+        }
+    }
+    best
+}
+
+/// Extent along z of a shape turned by `rot`: the spread of its spheres' z ranges.
+pub fn z_extent(shape: &Shape, rot: &UnitQuaternion<f64>) -> f64 {
+    // z of a body-frame offset o after rotation is (R^T e_z) . o.
+    let axis = rot.inverse_transform_vector(&Vector3::z());
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for (o, r) in shape.offsets.iter().zip(&shape.radii) {
+        let z = o.dot(&axis);
+        lo = lo.min(z - r);
+        hi = hi.max(z + r);
+    }
+    hi - lo
+}
+
 /// Paper, section 2.2: "in the initial configuration, the grains should not overlap". Draws
-/// up to `attempts` positions (from `draw`) and orientations for grain `i` and keeps the first
-/// without overlap against the grains in `near`, else the least overlapping one (the
-/// minimiser then removes the rest).
+/// up to `attempts` positions (from `draw`) and orientations (see [`draw_orientation`]) for
+/// grain `i` and keeps the first without overlap against the grains in `near`, else the
+/// least overlapping one (the minimiser then removes the rest).
 pub fn place(
     sys: &mut System,
     i: usize,
     near: &Neighbourhood,
     rng: &mut ChaCha8Rng,
     attempts: usize,
+    flat_draws: usize,
     mut draw: impl FnMut(&mut ChaCha8Rng) -> Vector3<f64>,
 ) {
     let mut best = (f64::INFINITY, sys.grains[i].pos, sys.grains[i].rot);
     for _ in 0..attempts {
         sys.grains[i].pos = draw(rng);
-        sys.grains[i].rot = quat(random_quaternion(rng));
+        sys.grains[i].rot = draw_orientation(&sys.shapes[sys.grains[i].shape], rng, flat_draws);
         let o = sys.max_overlap(i, near);
         if o < best.0 {
             best = (o, sys.grains[i].pos, sys.grains[i].rot);
@@ -140,11 +181,13 @@ pub fn place(
 }
 
 /// Places grains `range` one after the other (each against the grains `0..range.start`
-/// and those placed before it), drawing positions from `draw`.
+/// and those placed before it), drawing positions from `draw` and orientations with
+/// `flat_draws` (see [`draw_orientation`]).
 pub fn place_all(
     sys: &mut System,
     range: std::ops::Range<usize>,
     rng: &mut ChaCha8Rng,
+    flat_draws: usize,
     mut draw: impl FnMut(&mut ChaCha8Rng) -> Vector3<f64>,
 ) {
     let mut near = Neighbourhood::new(sys);
@@ -152,7 +195,7 @@ pub fn place_all(
         near.add(sys, j);
     }
     for i in range {
-        place(sys, i, &near, rng, PLACE_ATTEMPTS, &mut draw);
+        place(sys, i, &near, rng, PLACE_ATTEMPTS, flat_draws, &mut draw);
         near.add(sys, i);
     }
     sys.invalidate();
@@ -243,6 +286,9 @@ pub struct RunStats {
     pub backoffs: usize,
     /// Back-offs that re-expanded and shook the layer (see `contract`).
     pub shakes: usize,
+    /// Grains of earlier (frozen) layers released to move with the layer being packed after
+    /// it got stuck (see `release_contacts`).
+    pub released: usize,
     pub energy: f64,
     pub max_delta: f64,
     pub worst: Worst,
@@ -349,6 +395,10 @@ fn shake(sys: &mut System, rng: &mut ChaCha8Rng, amp: f64, around: Option<usize>
     sys.invalidate();
 }
 
+/// Orientation draws (see [`draw_orientation`]) of a grain relocated out of a jam in a
+/// stacked layer.
+pub const RELOCATE_FLAT_DRAWS: usize = 4;
+
 /// Moves grain `i` to the least overlapping of `PLACE_ATTEMPTS` random spots (and
 /// orientations) in its layer (stacked) or the cell (classic) at scale `s`.
 fn relocate(sys: &mut System, mode: &Mode, s: f64, i: usize, rng: &mut ChaCha8Rng) {
@@ -362,7 +412,13 @@ fn relocate(sys: &mut System, mode: &Mode, s: f64, i: usize, rng: &mut ChaCha8Rn
     for j in (0..n).filter(|&j| j != i) {
         near.add(sys, j);
     }
-    place(sys, i, &near, rng, PLACE_ATTEMPTS, |r| {
+    // A wedged grain in a layer contracted along z usually stands upright: it is put back
+    // lying flatter (see `draw_orientation`).
+    let flat_draws = match mode {
+        Mode::Isotropic { .. } => 1,
+        Mode::Stacked { .. } => RELOCATE_FLAT_DRAWS,
+    };
+    place(sys, i, &near, rng, PLACE_ATTEMPTS, flat_draws, |r| {
         Vector3::new(
             uniform(r, 0.0, cell[0]),
             uniform(r, 0.0, cell[1]),
@@ -370,6 +426,46 @@ fn relocate(sys: &mut System, mode: &Mode, s: f64, i: usize, rng: &mut ChaCha8Rn
         )
     });
     sys.invalidate();
+}
+
+/// Stacked layers only: releases the frozen grains of earlier layers that the layer being
+/// packed (bodies `first..`) can reach before its final size, i.e. whose bounding spheres come
+/// within `b_i + b_j + gap` plus the contraction still to come (`(s - 1) thickness`) of a mobile
+/// grain's, counting periodic images. They keep their own layer's soft box (centroids stay in
+/// their layer), so the stack stays layered. Returns the released grains.
+///
+/// Why: a layer is contracted onto the rough, rigid surface of the layer below and, with
+/// `periodic_z`, under the equally rigid bottom of layer 0's image above. Both were shaped
+/// against other neighbours, and a new layer jams in their pockets long before its own
+/// jamming density (issue 20: a second layer of elongated grains stuck at 7 % above its final
+/// size on every try). Letting the grains in contact adjust (a recoater does disturb the
+/// surface it spreads on) removes that mould; grains out of reach stay frozen.
+fn release_contacts(sys: &mut System, mode: &Mode, s: f64) -> Vec<usize> {
+    let Mode::Stacked {
+        first, thickness, ..
+    } = mode
+    else {
+        return Vec::new();
+    };
+    let cell = sys.cell;
+    let reach = sys.gap + (s - 1.0).max(0.0) * thickness;
+    let bound = |sys: &System, i: usize| sys.shapes[sys.grains[i].shape].bound;
+    let released: Vec<usize> = (0..*first)
+        .filter(|&j| sys.grains[j].frozen)
+        .filter(|&j| {
+            (*first..sys.grains.len()).any(|i| {
+                let d = Vector3::from([0, 1, 2].map(|a| {
+                    min_image(sys.grains[i].pos[a] - sys.grains[j].pos[a], cell[a], true)
+                }));
+                d.norm() < bound(sys, i) + bound(sys, j) + reach
+            })
+        })
+        .collect();
+    for &j in &released {
+        sys.grains[j].frozen = false;
+    }
+    sys.invalidate();
+    released
 }
 
 fn random_in_ball(rng: &mut ChaCha8Rng) -> Vector3<f64> {
@@ -479,6 +575,15 @@ fn contract_phases(
         return Err(fail(st, FailReason::InitialOverlap));
     }
     let mut rate = sch.rate0;
+    let mut released: Vec<usize> = Vec::new();
+    let restore = |sys: &mut System, snapshot: &[Grain], cell: [f64; 3], released: &[usize]| {
+        sys.grains = snapshot.to_vec();
+        for &j in released {
+            sys.grains[j].frozen = false;
+        }
+        sys.cell = cell;
+        sys.invalidate();
+    };
     // Starting temperature of a thermalisation: thermal overlaps sqrt(T) of
     // `anneal_amplitude` mean bounding radii of the mobile grains.
     let temperature = {
@@ -524,6 +629,13 @@ fn contract_phases(
         if st.iterations >= sch.max_iterations {
             return Err(fail(st, limit(s_new)));
         }
+        // The first stuck step of a layer on earlier ones releases the grains it touches
+        // (`release_contacts`); they stay released for the rest of this run, also across the
+        // undos below (the snapshots were taken while they were frozen).
+        if released.is_empty() {
+            released = release_contacts(sys, mode, s_new);
+            st.released = released.len();
+        }
         // A stuck step is a quench that jammed: thermalise it at its size and relax again
         // (System::anneal) before giving the step up; each cycle counts its Langevin steps
         // and its relaxation against the run's iteration limit.
@@ -561,14 +673,18 @@ fn contract_phases(
         if st.iterations >= sch.max_iterations {
             return Err(fail(st, limit(s_new)));
         }
+        // Only a grain of the layer being packed may be relocated within it.
+        let own = |i: usize| match mode {
+            Mode::Stacked { first, .. } => i >= *first,
+            Mode::Isotropic { .. } => true,
+        };
         let stuck_grain = match m.worst {
-            Worst::Pair(i, _) | Worst::Box(i) => Some(i),
+            Worst::Pair(i, j) => [i, j].into_iter().find(|&k| own(k)),
+            Worst::Box(i) => Some(i).filter(|&k| own(k)),
             Worst::None => None,
         };
         // Undo the contraction, halve the rate, shake the jammed arrangement loose.
-        sys.grains = snapshot.clone();
-        sys.cell = cell;
-        sys.invalidate();
+        restore(sys, &snapshot, cell, &released);
         st.backoffs += 1;
         rate *= 0.5;
         if rate < sch.rate_min {
@@ -600,9 +716,7 @@ fn contract_phases(
             rate = rate.min(0.5 * SHAKE_EXPANSION);
         } else {
             st.record(s_up, &m, Outcome::ShakeFailed);
-            sys.grains = snapshot;
-            sys.cell = cell;
-            sys.invalidate();
+            restore(sys, &snapshot, cell, &released);
             if st.iterations >= sch.max_iterations {
                 return Err(fail(st, limit(s)));
             }
@@ -629,4 +743,90 @@ pub fn v3(a: [f64; 3]) -> Vector3<f64> {
 /// [`grainpipe_core::spatial::random_quaternion`] (already normalised).
 pub fn quat([w, x, y, z]: [f64; 4]) -> UnitQuaternion<f64> {
     UnitQuaternion::new_unchecked(Quaternion::new(w, x, y, z))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    /// A dumbbell: two spheres of radius r at +-a along the body x axis.
+    fn dumbbell(a: f64, r: f64) -> Shape {
+        Shape::new([([a, 0.0, 0.0], r), ([-a, 0.0, 0.0], r)])
+    }
+
+    #[test]
+    fn flat_draws_follow_the_order_statistics_of_the_tilt() {
+        // For isotropic directions |n_z| is uniform on [0, 1], so the smallest of k draws has
+        // mean 1 / (k + 1); the dumbbell's extent along z is 2 a |n_z| + 2 r.
+        let (a, r) = (1.0, 0.1);
+        let shape = dumbbell(a, r);
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let samples = 20_000;
+        for k in [1usize, 4, 16] {
+            let mean = (0..samples)
+                .map(|_| z_extent(&shape, &draw_orientation(&shape, &mut rng, k)))
+                .sum::<f64>()
+                / samples as f64;
+            let exact = 2.0 * a / (k as f64 + 1.0) + 2.0 * r;
+            // Standard error of the mean of 2 a |n_z|_min: below 2 a / sqrt(12 samples).
+            let tol = 4.0 * 2.0 * a / (12.0 * samples as f64).sqrt();
+            assert!(
+                (mean - exact).abs() < tol,
+                "k = {k}: mean extent {mean}, exact {exact} +- {tol}"
+            );
+        }
+    }
+
+    #[test]
+    fn one_flat_draw_is_the_isotropic_draw() {
+        // The first try of a layer must stay the paper's uniform draw, bit for bit.
+        let shape = dumbbell(1.0, 0.1);
+        let mut a = ChaCha8Rng::seed_from_u64(5);
+        let mut b = ChaCha8Rng::seed_from_u64(5);
+        for _ in 0..100 {
+            let q = draw_orientation(&shape, &mut a, 1);
+            assert_eq!(q, quat(random_quaternion(&mut b)));
+        }
+    }
+
+    #[test]
+    fn release_frees_only_the_earlier_grains_within_reach() {
+        // Unit spheres (bound 1), gap 0.1, layer thickness 10 at scale 1.2 (cell height
+        // 10 + 12): reach 0.1 + 0.2 * 10 = 2.1, so an earlier grain is released when its
+        // centre is within 1 + 1 + 2.1 = 4.1 of a mobile one's, across periodic images too.
+        let shapes = vec![Shape::new([([0.0; 3], 1.0)])];
+        let grain = |x: f64, z: f64, frozen: bool| Grain {
+            shape: 0,
+            pos: v3([x, 5.0, z]),
+            rot: UnitQuaternion::identity(),
+            frozen,
+            zbox: None,
+        };
+        let grains = vec![
+            grain(5.0, 8.0, true),  // 4.0 below mobile grain 4: released
+            grain(5.0, 7.8, true),  // 4.2 below it: stays frozen
+            grain(18.0, 1.0, true), // 2.0 above mobile grain 5 through the z period: released
+            grain(1.5, 1.0, true),  // (3.5, 2.0) from grain 5 through both periods: released
+            grain(5.0, 12.0, false),
+            grain(18.0, 21.0, false),
+        ];
+        let mut sys = System::new(shapes, grains, [20.0, 20.0, 22.0], 0.1, 1e-3);
+        let mode = Mode::Stacked {
+            first: 4,
+            z0: 10.0,
+            thickness: 10.0,
+            margin: 0.0,
+            periodic_z: true,
+        };
+        let released = release_contacts(&mut sys, &mode, 1.2);
+        assert_eq!(released, vec![0, 2, 3]);
+        let frozen: Vec<bool> = sys.grains.iter().map(|g| g.frozen).collect();
+        assert_eq!(frozen, vec![false, true, false, false, false, false]);
+        // Classic packings have no earlier layers.
+        let iso = Mode::Isotropic {
+            final_cell: [20.0; 3],
+        };
+        assert!(release_contacts(&mut sys, &iso, 1.2).is_empty());
+    }
 }

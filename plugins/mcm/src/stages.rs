@@ -140,17 +140,18 @@ pub struct StackedParams {
     /// falling to zero, then overlap removal; lets a jammed quench rearrange into a denser,
     /// overlap-free packing (random close packing of spheres needs it). Counted in
     /// max_iterations.
-    // Off by default here: on clumps of ~200 spheres a Langevin step costs as much as a
-    // minimiser step, and the sand's stuck steps are freed faster by the shake
+    // 1000 steps at 0.03 with one cycle: on elongated grains nearly as long as the layer is
+    // thick, a quench jams a few per cent above the final size on every try and only a
+    // rearrangement gets past it; the shipped sand also needs fewer iterations with it
     // (BENCHMARKS.md, robustness on harder grain families).
-    #[param(default = 0)]
+    #[param(default = 1000)]
     pub anneal_steps: usize,
     /// Starting thermal amplitude of a thermalisation: the square root of the temperature,
     /// i.e. the typical thermal overlap, in mean bounding radii.
-    #[param(default = 0.05)]
+    #[param(default = 0.03)]
     pub anneal_amplitude: f64,
     /// Thermalisation cycles per stuck contraction step before it is undone (and shaken).
-    #[param(default = 2)]
+    #[param(default = 1)]
     pub anneal_cycles: usize,
 }
 
@@ -354,6 +355,7 @@ fn report(rows: &[Row]) -> Table {
         .with_i64("contraction_steps", "1", ints(|r| r.stats.steps))
         .with_i64("backoffs", "1", ints(|r| r.stats.backoffs))
         .with_i64("shakes", "1", ints(|r| r.stats.shakes))
+        .with_i64("released", "1", ints(|r| r.stats.released))
         .with_f64("time", "s", rows.iter().map(|r| r.time).collect())
         .with_f64(
             "overlap_energy",
@@ -415,7 +417,7 @@ fn contract_with_restarts(
     ctx: &RunContext,
     what: &str,
     mut progress: impl FnMut(f64) -> Result<(), StageError>,
-    mut replace: impl FnMut(&mut System, &mut ChaCha8Rng),
+    mut replace: impl FnMut(&mut System, &mut ChaCha8Rng, usize),
 ) -> Result<(RunStats, usize), (usize, Box<RunFailure>)> {
     let mut tries = 1;
     // Shakes re-expand the cell and a restart begins at beta again, so the contraction's own
@@ -429,8 +431,18 @@ fn contract_with_restarts(
         match contract(sys, mode, beta, sch, rng, &mut monotonic) {
             Ok(st) => return Ok((st, tries)),
             Err(f) if tries <= restarts && !matches!(f.reason, FailReason::Cancelled(_)) => {
+                // Stacked retries lie flatter (`retry_flat_draws`); say so, the orientation
+                // statistics of the layer depend on it.
+                let flatter = match mode {
+                    Mode::Stacked { .. } => format!(
+                        ", lying flatter (of {} random orientations each, the one with the \
+                         smallest extent along z)",
+                        retry_flat_draws(tries + 1)
+                    ),
+                    Mode::Isotropic { .. } => String::new(),
+                };
                 ctx.warn(&format!(
-                    "{what}: try {tries} failed ({}); placing the grains afresh and \
+                    "{what}: try {tries} failed ({}); placing the grains afresh{flatter} and \
                      contracting again from scale {beta} (try {} of {}; progress resumes \
                      once the new try passes the furthest point reached)",
                     f.reason,
@@ -438,11 +450,20 @@ fn contract_with_restarts(
                     restarts + 1
                 ));
                 tries += 1;
-                replace(sys, rng);
+                replace(sys, rng, tries);
             }
             Err(f) => return Err((tries, f)),
         }
     }
+}
+
+/// Orientation draws (see [`crate::pack::draw_orientation`]) of the placement of a stacked
+/// layer's try `try_no` (1-based): the first try is the paper's isotropic draw; a layer that
+/// jammed is placed again with grains lying flatter on each retry (best of 4, then 16 draws
+/// by extent along z), since grains standing upright are what a contraction along z cannot
+/// resolve (BENCHMARKS.md, robustness on harder grain families).
+pub fn retry_flat_draws(try_no: usize) -> usize {
+    1 << (2 * try_no.saturating_sub(1)).min(4)
 }
 
 /// The stage error for a contraction run that did not reach the final size.
@@ -694,7 +715,7 @@ fn library_port(doc: &'static str) -> PortSpec {
 fn outputs() -> Vec<PortSpec> {
     vec![
         PortSpec::new("packing", ArtifactKind::Packing, "periodic packing with layer ids (library embedded for clumps)"),
-        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, tries, iterations, contraction steps, back-offs, shakes, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction"),
+        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, tries, iterations, contraction steps, back-offs, shakes, grains of earlier layers released after a stuck step, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction"),
         PortSpec::new("history", ArtifactKind::Table, "convergence history: per layer and overlap-removal phase, the contraction scale, iterations, overlap energy, largest violation and outcome (converged, stuck, shaken, shake_failed)"),
         PortSpec::new("orientation", ArtifactKind::Tensor, "3x3 orientation tensor <n n> of the grains' long axes (smallest principal moment of inertia); 1/3 I for spheres"),
     ]
@@ -921,14 +942,14 @@ impl TypedStage for Classic {
         sys.margin = tol;
         sys.relaxation = c.relaxation();
         let mode = Mode::Isotropic { final_cell: cell };
-        let place_afresh = |sys: &mut System, rng: &mut ChaCha8Rng| {
+        let place_afresh = |sys: &mut System, rng: &mut ChaCha8Rng, _try: usize| {
             sys.cell = big;
             let n = sys.grains.len();
-            place_all(sys, 0..n, rng, |r| {
+            place_all(sys, 0..n, rng, 1, |r| {
                 v3([0, 1, 2].map(|a| uniform(r, 0.0, big[a])))
             });
         };
-        place_afresh(&mut sys, &mut rng);
+        place_afresh(&mut sys, &mut rng, 1);
         let (st, tries) = contract_with_restarts(
             &mut sys,
             &mode,
@@ -965,8 +986,8 @@ impl TypedStage for Stacked {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "mcm.stacked",
-            "2.1.0",
-            "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen, soft box on the centroids, each layer filled to eta exactly, jams shaken loose",
+            "2.2.0",
+            "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen (those a jammed layer touches released), soft box on the centroids, each layer filled to eta exactly, jams thermalised and shaken loose",
         )
         .inputs(vec![library_port("clumps to pack (scrambled Sobol sampling on bounding diameter, Remark 2); spheres from `radius` if absent")])
         .outputs(outputs())
@@ -1067,6 +1088,9 @@ impl TypedStage for Stacked {
             for g in &mut sys.grains {
                 g.frozen = true;
             }
+            // A try that got stuck may have moved grains of the earlier layers it released
+            // (`contract`); a new try starts from them as they were.
+            let earlier: Vec<Grain> = sys.grains.clone();
             let bmean = {
                 let b: f64 = picks.iter().map(|pk| src.shape(pk, s).bound).sum();
                 (b + sys.shapes.iter().map(|x| x.bound).sum::<f64>())
@@ -1102,7 +1126,7 @@ impl TypedStage for Stacked {
                 tagged.push((*pk, s, layer as u32));
             }
             let n = sys.grains.len();
-            place_all(&mut sys, first..n, &mut rng, in_layer);
+            place_all(&mut sys, first..n, &mut rng, 1, in_layer);
             let mode = Mode::Stacked {
                 first,
                 z0,
@@ -1121,10 +1145,11 @@ impl TypedStage for Stacked {
                 ctx,
                 &format!("mcm.stacked, layer {layer}"),
                 |f| ctx.progress(((layer as f64 + f) / nl * 1000.0) as u64, 1000),
-                |sys, rng| {
+                |sys, rng, try_no| {
+                    sys.grains[..first].clone_from_slice(&earlier);
                     sys.cell[2] = crate::pack::stacked_cell_z(z0 + p.beta * t, t, p.periodic_z);
                     let n = sys.grains.len();
-                    place_all(sys, first..n, rng, in_layer);
+                    place_all(sys, first..n, rng, retry_flat_draws(try_no), in_layer);
                 },
             )
             .map_err(|(tries, f)| run_failed("mcm.stacked", layer, p.layers, tries, *f))?;

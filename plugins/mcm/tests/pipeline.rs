@@ -56,7 +56,7 @@ fn mcm_pipeline_runs_and_exports() {
             b.layer
         );
     }
-    // The convergence history ends with a converged phase at the final size in each layer.
+    // The convergence history ends with a phase that met the tolerance at the final size.
     let scale = res.column("stacked.history", "scale");
     assert_eq!(scale.last(), Some(&1.0));
     let hist = res.table("stacked.history");
@@ -64,7 +64,16 @@ fn mcm_pipeline_runs_and_exports() {
     else {
         panic!("history column `outcome`")
     };
-    assert_eq!(outcome.last().map(String::as_str), Some("converged"));
+    // `annealed`: a stuck step thermalised at its size and then relaxed to the tolerance,
+    // kept like a converged one.
+    assert!(
+        matches!(
+            outcome.last().map(String::as_str),
+            Some("converged" | "annealed")
+        ),
+        "last phase {:?}",
+        outcome.last()
+    );
     for f in [
         "classic.vtp",
         "classic.h5",
