@@ -138,15 +138,19 @@ pub fn draw_orientation(
     best
 }
 
-/// Extent along z of a shape turned by `rot`: the spread of its spheres' z ranges.
+/// Extent along z of a shape turned by `rot`: its width along `R^T e_z` in the body frame.
 pub fn z_extent(shape: &Shape, rot: &UnitQuaternion<f64>) -> f64 {
-    // z of a body-frame offset o after rotation is (R^T e_z) . o.
-    let axis = rot.inverse_transform_vector(&Vector3::z());
+    width_along(shape, rot.inverse_transform_vector(&Vector3::z()))
+}
+
+/// The width of a shape along unit direction `n` (body frame): the extent of its spheres'
+/// projections.
+pub fn width_along(s: &Shape, n: Vector3<f64>) -> f64 {
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for (o, r) in shape.offsets.iter().zip(&shape.radii) {
-        let z = o.dot(&axis);
-        lo = lo.min(z - r);
-        hi = hi.max(z + r);
+    for (o, r) in s.offsets.iter().zip(&s.radii) {
+        let x = o.dot(&n);
+        lo = lo.min(x - r);
+        hi = hi.max(x + r);
     }
     hi - lo
 }

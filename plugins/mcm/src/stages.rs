@@ -526,17 +526,6 @@ fn check_fits(key: &str, width: f64, gap: f64, shapes: &[Shape]) -> Result<(), S
 /// Directions over a hemisphere (Fibonacci lattice) for the thinnest width of a grain.
 const WIDTH_DIRECTIONS: usize = 400;
 
-/// The width of a shape along unit direction `n`: the extent of its spheres' projections.
-fn width_along(s: &Shape, n: nalgebra::Vector3<f64>) -> f64 {
-    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for (o, r) in s.offsets.iter().zip(&s.radii) {
-        let x = o.dot(&n);
-        lo = lo.min(x - r);
-        hi = hi.max(x + r);
-    }
-    hi - lo
-}
-
 /// The thinnest width of a shape over `WIDTH_DIRECTIONS` directions, less a bound on the
 /// error of the sampling (the width is within bound * spacing^2 of its minimum near it), so
 /// it never exceeds the true thinnest width by more than rounding.
@@ -548,7 +537,7 @@ fn thinnest_width(s: &Shape) -> f64 {
             let z = 1.0 - (k as f64 + 0.5) / m as f64; // upper hemisphere suffices: w(n) = w(-n)
             let rho = (1.0 - z * z).sqrt();
             let phi = golden * k as f64;
-            width_along(
+            crate::pack::width_along(
                 s,
                 nalgebra::Vector3::new(rho * phi.cos(), rho * phi.sin(), z),
             )
