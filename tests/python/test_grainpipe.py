@@ -318,13 +318,19 @@ def test_sigint_cancels_at_next_checkpoint(tmp_path):
             sent.append(time.monotonic())
             os.kill(os.getpid(), signal.SIGINT)
 
+    # A process started in the background by a non-interactive shell inherits SIGINT ignored,
+    # and Python then installs no KeyboardInterrupt handler: install it for this test.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     started = time.monotonic()
-    with pytest.raises(KeyboardInterrupt):
-        # About 370 million voxels: far longer than it takes to notice the signal.
-        gp.run(SPHERES, set={"pack.size": "[600 um, 600 um, 600 um]",
-                             "voxels.voxels_per_diameter": 60},
-               seed=SEED, cache=tmp_path / "cache", out=tmp_path / "run",
-               progress=ctrl_c_during_voxels)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            # About 370 million voxels: far longer than it takes to notice the signal.
+            gp.run(SPHERES, set={"pack.size": "[600 um, 600 um, 600 um]",
+                                 "voxels.voxels_per_diameter": 60},
+                   seed=SEED, cache=tmp_path / "cache", out=tmp_path / "run",
+                   progress=ctrl_c_during_voxels)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert sent, "the voxels step never started"
     assert time.monotonic() - started < 30
     # Nothing of the interrupted step: no export, no cache entry for it.
