@@ -264,6 +264,18 @@ fn contact_normal(d: V3, dist: f64, sep: V3) -> V3 {
     }
 }
 
+/// Remark 4's soft box: the signed distance that brings a centroid at height `z` back into
+/// `[lo, hi]` (0 inside); it is both the penalty force along z and the excursion.
+fn box_push(z: f64, lo: f64, hi: f64) -> f64 {
+    if z < lo {
+        lo - z
+    } else if z > hi {
+        hi - z
+    } else {
+        0.0
+    }
+}
+
 impl System {
     pub fn new(shapes: Vec<Shape>, grains: Vec<Grain>, cell: [f64; 3], gap: f64, tol: f64) -> Self {
         let n = grains.len();
@@ -554,14 +566,7 @@ impl System {
                 }
                 if let Some((lo, hi)) = gi.zbox {
                     // Remark 4: soft box on the centroid, quadratic penalty.
-                    let z = gi.pos.z;
-                    let v = if z < lo {
-                        lo - z
-                    } else if z > hi {
-                        hi - z
-                    } else {
-                        0.0
-                    };
+                    let v = box_push(gi.pos.z, lo, hi);
                     out.force.z += v;
                     out.minimised += 0.5 * v * v;
                     // The box is padded by `margin` like the gap: report the true excursion.
@@ -660,14 +665,7 @@ impl System {
                 }
             }
             if let Some((lo, hi)) = gi.zbox {
-                let z = gi.pos.z;
-                let v = if z < lo {
-                    lo - z
-                } else if z > hi {
-                    hi - z
-                } else {
-                    0.0
-                };
+                let v = box_push(gi.pos.z, lo, hi);
                 force.z += v;
                 minimised += 0.5 * v * v;
                 let outside = (v.abs() - margin).max(0.0);

@@ -405,7 +405,8 @@ fn history(rows: &[Row]) -> Table {
 }
 
 /// `contract`, and after a failed try (not a cancellation) `replace` followed by another
-/// try, up to `restarts` times. Ok = (stats, tries); Err = (tries, the last failure).
+/// try, up to `restarts` times; `replace` gets the orientation draws of the new try's
+/// placement (see `retry_flat_draws`). Ok = (stats, tries); Err = (tries, the last failure).
 #[allow(clippy::too_many_arguments)]
 fn contract_with_restarts(
     sys: &mut System,
@@ -431,15 +432,20 @@ fn contract_with_restarts(
         match contract(sys, mode, beta, sch, rng, &mut monotonic) {
             Ok(st) => return Ok((st, tries)),
             Err(f) if tries <= restarts && !matches!(f.reason, FailReason::Cancelled(_)) => {
-                // Stacked retries lie flatter (`retry_flat_draws`); say so, the orientation
-                // statistics of the layer depend on it.
-                let flatter = match mode {
-                    Mode::Stacked { .. } => format!(
-                        ", lying flatter (of {} random orientations each, the one with the \
-                         smallest extent along z)",
-                        retry_flat_draws(tries + 1)
-                    ),
-                    Mode::Isotropic { .. } => String::new(),
+                // Stacked retries lie flatter (`retry_flat_draws`): the placement and the
+                // warning take the draws from here, the orientation statistics of the layer
+                // depend on them.
+                let flat_draws = match mode {
+                    Mode::Stacked { .. } => retry_flat_draws(tries + 1),
+                    Mode::Isotropic { .. } => 1,
+                };
+                let flatter = if flat_draws > 1 {
+                    format!(
+                        ", lying flatter (of {flat_draws} random orientations each, the one \
+                         with the smallest extent along z)"
+                    )
+                } else {
+                    String::new()
                 };
                 ctx.warn(&format!(
                     "{what}: try {tries} failed ({}); placing the grains afresh{flatter} and \
@@ -450,7 +456,7 @@ fn contract_with_restarts(
                     restarts + 1
                 ));
                 tries += 1;
-                replace(sys, rng, tries);
+                replace(sys, rng, flat_draws);
             }
             Err(f) => return Err((tries, f)),
         }
@@ -931,10 +937,10 @@ impl TypedStage for Classic {
         sys.margin = tol;
         sys.relaxation = c.relaxation();
         let mode = Mode::Isotropic { final_cell: cell };
-        let place_afresh = |sys: &mut System, rng: &mut ChaCha8Rng, _try: usize| {
+        let place_afresh = |sys: &mut System, rng: &mut ChaCha8Rng, flat_draws: usize| {
             sys.cell = big;
             let n = sys.grains.len();
-            place_all(sys, 0..n, rng, 1, |r| {
+            place_all(sys, 0..n, rng, flat_draws, |r| {
                 v3([0, 1, 2].map(|a| uniform(r, 0.0, big[a])))
             });
         };
@@ -1134,11 +1140,11 @@ impl TypedStage for Stacked {
                 ctx,
                 &format!("mcm.stacked, layer {layer}"),
                 |f| ctx.progress(((layer as f64 + f) / nl * 1000.0) as u64, 1000),
-                |sys, rng, try_no| {
+                |sys, rng, flat_draws| {
                     sys.grains[..first].clone_from_slice(&earlier);
                     sys.cell[2] = crate::pack::stacked_cell_z(z0 + p.beta * t, t, p.periodic_z);
                     let n = sys.grains.len();
-                    place_all(sys, first..n, rng, retry_flat_draws(try_no), in_layer);
+                    place_all(sys, first..n, rng, flat_draws, in_layer);
                 },
             )
             .map_err(|(tries, f)| run_failed("mcm.stacked", layer, p.layers, tries, *f))?;
