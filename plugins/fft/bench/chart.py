@@ -147,7 +147,7 @@ def main():
             ax.loglog([p[0] for p in pts], [p[1] for p in pts], color=c, marker=m, label=name)
             for t, e, n in pts:
                 ax.annotate(f"{n}", (t, e), textcoords="offset points", xytext=(4, 4), fontsize=7)
-        ax.set_xlabel("CPU time of the run, xx + yz [s] (2 shared cores)")
+        ax.set_xlabel("CPU time of the run, xx + yz [s] (2 cores)")
         ax.set_ylabel(f"relative error of {label}")
         ax.set_title(f"SC spherical pore, porosity 0.2: {label} (load {case})")
         ax.grid(True, which="both", alpha=0.3)

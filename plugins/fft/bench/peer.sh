@@ -6,6 +6,11 @@
 # RSS; `uptime` is logged beside it because the 2 cores are shared.
 #
 #   plugins/fft/bench/peer.sh [sizes...]        (default: 32 64)
+#   OURS_ONLY="96 112 128 160" plugins/fft/bench/peer.sh 32 64
+#
+# OURS_ONLY: sizes run by ours alone (finer grids that reach the peer's accuracy; muSpectre
+# at 128^3 would need ~70 GB). PRECISIONS: ours in these precisions (default "double single";
+# the peer runs in double).
 #
 # Writes plugins/fft/bench/peer.csv (one row per run and load case) and peer.log.
 # The venv is private to the bench (plugins/fft/bench/.venv, gitignored) so `make test`
@@ -16,6 +21,8 @@ bench=plugins/fft/bench
 venv=$bench/.venv
 sizes=("${@:-32 64}")
 read -r -a sizes <<<"${sizes[*]}"
+read -r -a ours_only <<<"${OURS_ONLY-}"
+read -r -a precisions <<<"${PRECISIONS-double single}"
 
 if [ ! -x $venv/bin/python ] || ! $venv/bin/python -c 'import muSpectre, matplotlib' 2>/dev/null; then
   python3 -m venv $venv
@@ -55,10 +62,14 @@ run() {
   rm -f "$tv"
 }
 
-for n in "${sizes[@]}"; do
-  run muspectre $venv/bin/python $bench/muspectre_sc_pore.py "$n" xx,yz 1e-5
+for n in "${sizes[@]}" "${ours_only[@]}"; do
+  if [[ " ${sizes[*]} " == *" $n "* ]]; then
+    run muspectre $venv/bin/python $bench/muspectre_sc_pore.py "$n" xx,yz 1e-5
+  fi
   for d in staggered hex8; do
-    run ours $ours "$n" $d xx,yz 1e-5
+    for prec in "${precisions[@]}"; do
+      run ours $ours "$n" $d xx,yz 1e-5 "$prec"
+    done
   done
 done
 column -s, -t "$csv"

@@ -191,3 +191,19 @@ pub fn hermitian_inverse(a: [[C64; 3]; 3], zero_below: f64) -> [f64; 9] {
         i12.im,
     ]
 }
+
+/// Bilinear weights, at one Gauss point, of the 4 element edges parallel to each axis (edge
+/// `j + 2 k` over the two other axes in order), from the point's linear weights
+/// `wt[axis] = [1 - p, p]`: a nodal difference along an axis is interpolated to the point
+/// with them.
+pub fn edge_weights<T: crate::real::Real>(wt: &[[T; 2]; 3]) -> [[T; 4]; 3] {
+    let we = |a: usize, b: usize| {
+        [
+            wt[a][0] * wt[b][0],
+            wt[a][1] * wt[b][0],
+            wt[a][0] * wt[b][1],
+            wt[a][1] * wt[b][1],
+        ]
+    };
+    [we(1, 2), we(0, 2), we(0, 1)]
+}

@@ -12,7 +12,7 @@ use num_complex::Complex;
 use rayon::prelude::*;
 
 use super::solver::CellProblem;
-use super::{gauss_points, nodal_gradient, AxisTables, Scheme, C64};
+use super::{edge_weights, gauss_points, nodal_gradient, AxisTables, Scheme, C64};
 use crate::fft3::Fft3;
 use crate::real::Real;
 
@@ -300,15 +300,7 @@ impl<T: Real> Scalar<T> {
                         }
                         let mut f = [[T::zero(); 4]; 3];
                         for (wt, w) in &gauss {
-                            let we = |a: usize, b: usize| {
-                                [
-                                    wt[a][0] * wt[b][0],
-                                    wt[a][1] * wt[b][0],
-                                    wt[a][0] * wt[b][1],
-                                    wt[a][1] * wt[b][1],
-                                ]
-                            };
-                            let ws = [we(1, 2), we(0, 2), we(0, 1)];
+                            let ws = edge_weights(wt);
                             for ax in 0..3 {
                                 let gr = d[ax][0] * ws[ax][0]
                                     + d[ax][1] * ws[ax][1]
