@@ -59,8 +59,8 @@ pub enum Precision {
     /// Double precision fields (64-bit).
     #[serde(rename = "double")]
     F64,
-    /// Single precision fields (32-bit; half the memory, reductions stay in double).
-    /// Residuals below about 1e-5 may not be reachable.
+    /// Single precision fields (32-bit; half the memory, reductions stay in double). Below
+    /// a residual of about 1e-6 the one CG reports no longer tracks the true one.
     #[serde(rename = "single")]
     F32,
 }
@@ -86,10 +86,67 @@ pub struct BulkShear {
 
 /// An isotropic material given as `{E, nu}` or `{K, G}`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(untagged)]
+#[serde(untagged, try_from = "MaterialKeys")]
 pub enum Material {
     YoungPoisson(YoungPoisson),
     BulkShear(BulkShear),
+}
+
+/// The keys a material may have, read first so that a wrong combination gets a message
+/// naming the keys (an untagged enum only says that no variant matched).
+#[derive(Deserialize)]
+#[serde(
+    deny_unknown_fields,
+    expecting = "a map {E: pressure, nu: number} or {K: pressure, G: pressure}"
+)]
+struct MaterialKeys {
+    #[serde(rename = "E")]
+    e: Option<Q<Pressure>>,
+    nu: Option<f64>,
+    #[serde(rename = "K")]
+    k: Option<Q<Pressure>>,
+    #[serde(rename = "G")]
+    g: Option<Q<Pressure>>,
+}
+
+impl TryFrom<MaterialKeys> for Material {
+    type Error = String;
+    fn try_from(m: MaterialKeys) -> Result<Self, String> {
+        match m {
+            MaterialKeys {
+                e: Some(e),
+                nu: Some(nu),
+                k: None,
+                g: None,
+            } => Ok(Material::YoungPoisson(YoungPoisson { e, nu })),
+            MaterialKeys {
+                e: None,
+                nu: None,
+                k: Some(k),
+                g: Some(g),
+            } => Ok(Material::BulkShear(BulkShear { k, g })),
+            m => {
+                let given: Vec<&str> = [
+                    ("E", m.e.is_some()),
+                    ("nu", m.nu.is_some()),
+                    ("K", m.k.is_some()),
+                    ("G", m.g.is_some()),
+                ]
+                .iter()
+                .filter(|(_, set)| *set)
+                .map(|(key, _)| *key)
+                .collect();
+                Err(format!(
+                    "give either {{E, nu}} or {{K, G}} (e.g. {{E: 66.9 GPa, nu: 0.25}}); got {}",
+                    if given.is_empty() {
+                        "no keys".to_string()
+                    } else {
+                        format!("{{{}}}", given.join(", "))
+                    }
+                ))
+            }
+        }
+    }
 }
 
 impl Material {

@@ -112,3 +112,43 @@ stages:
         .expect("tolerance 2 is refused");
     assert!(err.to_string().contains("tolerance"), "{err}");
 }
+
+/// A material with a wrong set of keys is refused before anything runs, with a message
+/// naming the keys given and the two accepted forms.
+#[test]
+fn a_material_with_mixed_keys_names_them() {
+    let yaml = |material: &str| {
+        format!(
+            r#"
+name: t
+stages:
+  - id: pack
+    use: packing.rsa
+    with: {{ size: [100 um, 100 um, 100 um], radius: {{ kind: fixed, value: 20 um }}, volume_fraction: 0.2 }}
+  - id: voxels
+    use: voxelize.packing
+    in: {{ packing: pack.packing }}
+    with: {{ voxel_size: 10 um, phase_name: sand }}
+  - id: stiffness
+    use: elasticity.fft
+    in: {{ image: voxels.image }}
+    with: {{ materials: {{ sand: {material} }} }}
+"#
+        )
+    };
+    for (material, expect) in [
+        ("{ E: 66.9 GPa, nu: 0.25, K: 3 GPa }", "got {E, nu, K}"),
+        ("{ E: 66.9 GPa }", "got {E}"),
+        ("{ G: 3 GPa }", "got {G}"),
+        ("{ E: 66.9 GPa, Nu: 0.25 }", "unknown field `Nu`"),
+    ] {
+        let err = run_yaml(&registry(), &yaml(material))
+            .err()
+            .unwrap_or_else(|| panic!("{material} is refused"))
+            .to_string();
+        assert!(err.contains(expect), "{material}: {err}");
+        if !expect.starts_with("unknown") {
+            assert!(err.contains("{E, nu} or {K, G}"), "{material}: {err}");
+        }
+    }
+}

@@ -1555,4 +1555,20 @@ mod tests {
             }
         }
     }
+
+    #[test]
+    fn fused_preconditioner_matches_its_definition() {
+        let dims = [6, 5, 4];
+        let n: usize = dims.iter().product();
+        let labels: Vec<u8> = (0..n).map(|i| (i * 7 % 3) as u8).collect();
+        let mut mats = [Iso::ZERO; 256];
+        mats[1] = Iso::from_e_nu(2.0, 0.25);
+        mats[2] = Iso::from_e_nu(1.0, 0.3);
+        let c0 = Iso::from_e_nu(1.5, 0.2);
+        for scheme in [Scheme::Staggered, Scheme::Hex8] {
+            let mut p =
+                Elastic::<f64>::new(dims, [1.0, 0.8, 1.3], labels.clone(), mats, scheme, c0);
+            crate::kernel::solver::check_precondition_dot(&mut p, 0.61);
+        }
+    }
 }

@@ -295,6 +295,36 @@ pub fn solve<T: Real, P: CellProblem<T>>(
     ))
 }
 
+/// `precondition_dot(Some((alpha, q)))` against its definition: `r -= alpha q`, then
+/// `z = K0^{-1} r` by `precondition`, then `r . z` (to round-off: only the summation order
+/// differs).
+#[cfg(test)]
+pub fn check_precondition_dot<T: Real, P: CellProblem<T>>(p: &mut P, seed: f64) {
+    let n = p.unknowns();
+    let r0: Vec<T> = (0..n).map(|i| T::of((i as f64 * seed).sin())).collect();
+    let q: Vec<T> = (0..n)
+        .map(|i| T::of((i as f64 * 0.29 + seed).cos()))
+        .collect();
+    let alpha = 0.37;
+    let mut r_fused = r0.clone();
+    let mut z_fused = vec![T::zero(); n];
+    let rz_fused = p.precondition_dot(Some((alpha, &q)), &mut r_fused, &mut z_fused);
+    let mut r = r0;
+    axpy(-alpha, &q, &mut r);
+    let mut z = vec![T::zero(); n];
+    p.precondition(&r, &mut z);
+    let rz = dot(&r, &z);
+    assert_eq!(r, r_fused, "r -= alpha q must be the same per element");
+    let zmax = z.iter().fold(0.0f64, |m, v| m.max(v.f64().abs()));
+    for (a, b) in z.iter().zip(&z_fused) {
+        assert!((a.f64() - b.f64()).abs() <= 1e-12 * zmax);
+    }
+    assert!(
+        (rz - rz_fused).abs() <= 1e-12 * rz.abs(),
+        "{rz} vs {rz_fused}"
+    );
+}
+
 /// Divergence and stagnation watch.
 struct Watch {
     first: Option<f64>,
