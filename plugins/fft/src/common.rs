@@ -161,6 +161,7 @@ impl Material {
                 if !(e > 0.0 && e.is_finite()) {
                     return Err(format!("E must be positive, got {e} Pa"));
                 }
+                plausible_modulus("E", e)?;
                 if !(m.nu > -1.0 && m.nu < 0.5) {
                     return Err(format!("nu must lie in (-1, 0.5), got {}", m.nu));
                 }
@@ -171,10 +172,27 @@ impl Material {
                 if !(k > 0.0 && g > 0.0 && k.is_finite() && g.is_finite()) {
                     return Err(format!("K and G must be positive, got {k} Pa and {g} Pa"));
                 }
+                plausible_modulus("K", k)?;
+                plausible_modulus("G", g)?;
                 Ok(crate::kernel::Iso::from_k_g(k, g))
             }
         }
     }
+}
+
+/// Largest modulus accepted: 1e15 Pa, about 1000 times diamond's Young's modulus. Above it
+/// the value is a unit slip (`GPa` for `Pa` twice over), and energies of order E^2 head for
+/// the f64 overflow.
+pub const MAX_MODULUS: f64 = 1e15;
+
+fn plausible_modulus(key: &str, v: f64) -> Result<(), String> {
+    if v > MAX_MODULUS {
+        return Err(format!(
+            "{key} = {v:.3e} Pa is above {MAX_MODULUS:.0e} Pa (1000x diamond); check the unit \
+             (66.9 GPa for quartz)"
+        ));
+    }
+    Ok(())
 }
 
 impl ParamType for Material {

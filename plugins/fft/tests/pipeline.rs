@@ -152,3 +152,43 @@ stages:
         }
     }
 }
+
+/// Moduli far outside any material are refused at preflight with a hint at the unit; and
+/// values that overflow double precision in the solver (a conductivity of 1e307 W/(m K))
+/// fail with the cause instead of "converging" in 0 iterations to infinite moduli.
+#[test]
+fn moduli_out_of_range_fail_loudly() {
+    let yaml = |stage: &str| {
+        format!(
+            r#"
+name: t
+stages:
+  - id: pack
+    use: packing.rsa
+    with: {{ size: [100 um, 100 um, 100 um], radius: {{ kind: fixed, value: 20 um }}, volume_fraction: 0.2 }}
+  - id: voxels
+    use: voxelize.packing
+    in: {{ packing: pack.packing }}
+    with: {{ voxel_size: 10 um, phase_name: sand }}
+  - id: out
+{stage}
+"#
+        )
+    };
+    let stiff = yaml(
+        "    use: elasticity.fft\n    in: { image: voxels.image }\n    with: { materials: { sand: { E: 1e308 Pa, nu: 0.25 } } }",
+    );
+    let err = run_yaml(&registry(), &stiff)
+        .err()
+        .expect("E = 1e308 Pa is refused")
+        .to_string();
+    assert!(err.contains("check the unit"), "{err}");
+    let cond = yaml(
+        "    use: conductivity.fft\n    in: { image: voxels.image }\n    with: { conductivities: { sand: 1e307 W/(m K) } }",
+    );
+    let err = run_yaml(&registry(), &cond)
+        .err()
+        .expect("k = 1e307 fails")
+        .to_string();
+    assert!(err.contains("out of floating-point range"), "{err}");
+}

@@ -78,6 +78,12 @@ pub enum SolveError {
         residual: f64,
         curvature: f64,
     },
+    /// The load's reference energy or the first residual is not a finite positive number:
+    /// the moduli or the load overflow (or underflow) double precision.
+    OutOfRange {
+        scale: f64,
+        residual: f64,
+    },
     Cancelled,
 }
 
@@ -121,6 +127,12 @@ impl fmt::Display for SolveError {
                 "loss of positive definiteness at iteration {iterations} (curvature \
                  {curvature:.3e}): residual {residual:.3e}; the discretized operator is not \
                  positive on the search direction (hourglass or pore modes)"
+            ),
+            SolveError::OutOfRange { scale, residual } => write!(
+                f,
+                "the problem is out of floating-point range before the first iteration (load \
+                 energy scale {scale:.3e}, residual {residual:.3e}): the moduli or \
+                 conductivities overflow or underflow; check their units"
             ),
             SolveError::Cancelled => write!(f, "cancelled"),
         }
@@ -212,6 +224,17 @@ pub fn solve<T: Real, P: CellProblem<T>>(
     let mut rz = problem.precondition_dot(None, &mut r, &mut z);
     let mut res = rz.max(0.0).sqrt() / scale;
     history.push(res);
+    // A zero or infinite scale or a NaN residual would pass the test below as "converged"
+    // with garbage (inf) moduli.
+    if !(scale > 0.0 && scale.is_finite() && res.is_finite() && rz.is_finite()) {
+        return Err((
+            SolveError::OutOfRange {
+                scale,
+                residual: res,
+            },
+            history,
+        ));
+    }
     if res <= opt.tolerance {
         return Ok(Solution { u, history });
     }
