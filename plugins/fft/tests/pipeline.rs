@@ -90,36 +90,11 @@ fn elasticity_pipeline_runs_and_exports() {
     }
 }
 
-#[test]
-fn a_bad_tolerance_is_a_parameter_error() {
-    let yaml = r#"
-name: t
-stages:
-  - id: pack
-    use: packing.rsa
-    with: { size: [100 um, 100 um, 100 um], radius: { kind: fixed, value: 20 um }, volume_fraction: 0.2 }
-  - id: voxels
-    use: voxelize.packing
-    in: { packing: pack.packing }
-    with: { voxel_size: 10 um, phase_name: sand }
-  - id: stiffness
-    use: elasticity.fft
-    in: { image: voxels.image }
-    with: { tolerance: 2 }
-"#;
-    let err = run_yaml(&registry(), yaml)
-        .err()
-        .expect("tolerance 2 is refused");
-    assert!(err.to_string().contains("tolerance"), "{err}");
-}
-
-/// A material with a wrong set of keys is refused before anything runs, with a message
-/// naming the keys given and the two accepted forms.
-#[test]
-fn a_material_with_mixed_keys_names_them() {
-    let yaml = |material: &str| {
-        format!(
-            r#"
+/// The error of a small pipeline (RSA spheres at 10 um voxels) whose last step is `stage`
+/// with parameters `with` (a YAML flow map); panics if it runs.
+fn refusal(stage: &str, with: &str) -> String {
+    let yaml = format!(
+        r#"
 name: t
 stages:
   - id: pack
@@ -129,23 +104,38 @@ stages:
     use: voxelize.packing
     in: {{ packing: pack.packing }}
     with: {{ voxel_size: 10 um, phase_name: sand }}
-  - id: stiffness
-    use: elasticity.fft
+  - id: out
+    use: {stage}
     in: {{ image: voxels.image }}
-    with: {{ materials: {{ sand: {material} }} }}
+    with: {with}
 "#
-        )
-    };
+    );
+    match run_yaml(&registry(), &yaml) {
+        Ok(_) => panic!("{stage} with {with} ran; it should be refused"),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn a_bad_tolerance_is_a_parameter_error() {
+    let err = refusal("elasticity.fft", "{ tolerance: 2 }");
+    assert!(err.contains("tolerance"), "{err}");
+}
+
+/// A material with a wrong set of keys is refused before anything runs, with a message
+/// naming the keys given and the two accepted forms.
+#[test]
+fn a_material_with_mixed_keys_names_them() {
     for (material, expect) in [
         ("{ E: 66.9 GPa, nu: 0.25, K: 3 GPa }", "got {E, nu, K}"),
         ("{ E: 66.9 GPa }", "got {E}"),
         ("{ G: 3 GPa }", "got {G}"),
         ("{ E: 66.9 GPa, Nu: 0.25 }", "unknown field `Nu`"),
     ] {
-        let err = run_yaml(&registry(), &yaml(material))
-            .err()
-            .unwrap_or_else(|| panic!("{material} is refused"))
-            .to_string();
+        let err = refusal(
+            "elasticity.fft",
+            &format!("{{ materials: {{ sand: {material} }} }}"),
+        );
         assert!(err.contains(expect), "{material}: {err}");
         if !expect.starts_with("unknown") {
             assert!(err.contains("{E, nu} or {K, G}"), "{material}: {err}");
@@ -158,37 +148,14 @@ stages:
 /// fail with the cause instead of "converging" in 0 iterations to infinite moduli.
 #[test]
 fn moduli_out_of_range_fail_loudly() {
-    let yaml = |stage: &str| {
-        format!(
-            r#"
-name: t
-stages:
-  - id: pack
-    use: packing.rsa
-    with: {{ size: [100 um, 100 um, 100 um], radius: {{ kind: fixed, value: 20 um }}, volume_fraction: 0.2 }}
-  - id: voxels
-    use: voxelize.packing
-    in: {{ packing: pack.packing }}
-    with: {{ voxel_size: 10 um, phase_name: sand }}
-  - id: out
-{stage}
-"#
-        )
-    };
-    let stiff = yaml(
-        "    use: elasticity.fft\n    in: { image: voxels.image }\n    with: { materials: { sand: { E: 1e308 Pa, nu: 0.25 } } }",
+    let err = refusal(
+        "elasticity.fft",
+        "{ materials: { sand: { E: 1e308 Pa, nu: 0.25 } } }",
     );
-    let err = run_yaml(&registry(), &stiff)
-        .err()
-        .expect("E = 1e308 Pa is refused")
-        .to_string();
     assert!(err.contains("check the unit"), "{err}");
-    let cond = yaml(
-        "    use: conductivity.fft\n    in: { image: voxels.image }\n    with: { conductivities: { sand: 1e307 W/(m K) } }",
+    let err = refusal(
+        "conductivity.fft",
+        "{ conductivities: { sand: 1e307 W/(m K) } }",
     );
-    let err = run_yaml(&registry(), &cond)
-        .err()
-        .expect("k = 1e307 fails")
-        .to_string();
     assert!(err.contains("out of floating-point range"), "{err}");
 }

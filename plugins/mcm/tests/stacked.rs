@@ -3,6 +3,26 @@ use common::*;
 use grainpipe_mcm::stages::{Classic, Stacked};
 use serde_json::json;
 
+/// An integer column of the stage's report, one value per layer.
+fn report_i64(out: &grainpipe_core::Outputs, name: &str) -> Vec<i64> {
+    match &out["report"].as_table().unwrap().column(name).unwrap().data {
+        grainpipe_core::ColumnData::I64(v) => v.clone(),
+        _ => panic!("report column `{name}` is not an integer column"),
+    }
+}
+
+/// Every centroid lies in its own layer of thickness `t` (the soft box of Remark 4).
+fn assert_centroids_in_layers(p: &grainpipe_core::Packing, t: f64, what: &str) {
+    for b in &p.bodies {
+        let z = b.position[2];
+        assert!(
+            z >= b.layer as f64 * t && z <= (b.layer + 1) as f64 * t,
+            "{what}: centroid z = {z} outside layer {}",
+            b.layer
+        );
+    }
+}
+
 fn spheres(layers: usize, seed: u64) -> grainpipe_core::Outputs {
     run(
         &Stacked,
@@ -23,31 +43,15 @@ fn layers_are_frozen_filled_exactly_and_overlap_free() {
     // Layer 0 is generated identically in both runs; in the two-layer run it is frozen while
     // layer 1 is packed on it (layer 1 never got stuck, so no grain of layer 0 was released),
     // so its bodies must be bit-identical.
-    let released = match &two["report"]
-        .as_table()
-        .unwrap()
-        .column("released")
-        .unwrap()
-        .data
-    {
-        grainpipe_core::ColumnData::I64(v) => v.clone(),
-        _ => panic!("report column `released`"),
-    };
-    assert_eq!(released, vec![0, 0]);
+    assert_eq!(report_i64(&two, "released"), vec![0, 0]);
     let l0: Vec<_> = p2.bodies.iter().filter(|b| b.layer == 0).cloned().collect();
     assert_eq!(l0, p1.bodies);
     let t = 200e-6;
     let per_layer = 0.45 * 400e-6 * 400e-6 * t;
+    assert_centroids_in_layers(p2, t, "two layers");
     for layer in 0..2u32 {
         let bodies: Vec<_> = p2.bodies.iter().filter(|b| b.layer == layer).collect();
         assert!(!bodies.is_empty());
-        for b in &bodies {
-            let z = b.position[2];
-            assert!(
-                z >= layer as f64 * t && z <= (layer + 1) as f64 * t,
-                "centroid z = {z} outside layer {layer}"
-            );
-        }
         // Remark 1: the grains of each layer are rescaled to exactly eta V_layer.
         let v: f64 = bodies.iter().map(|b| p2.body_volume(b)).sum();
         assert!(
@@ -142,13 +146,7 @@ fn free_surface_layers_with_the_papers_gap_pack_without_overlap() {
     let g = min_surface_gap(p);
     assert!(g >= 8e-6 - 1e-12, "gap {g}");
     let t = 280e-6;
-    for b in &p.bodies {
-        let z = b.position[2];
-        assert!(
-            z >= b.layer as f64 * t && z <= (b.layer + 1) as f64 * t,
-            "z = {z}"
-        );
-    }
+    assert_centroids_in_layers(p, t, "free surface");
     // Remark 1: 0.5 of each layer's volume, exactly.
     let v = 0.5 * 560e-6 * 560e-6 * 2.0 * t;
     assert!((p.solid_volume() / v - 1.0).abs() < 1e-9);
@@ -237,29 +235,14 @@ fn a_jammed_layer_releases_the_grains_it_touches_and_stays_layered() {
             seed,
         )
         .unwrap();
-        let rep = out["report"].as_table().unwrap();
-        let col = |name: &str| match &rep.column(name).unwrap().data {
-            grainpipe_core::ColumnData::I64(v) => v.clone(),
-            _ => panic!("{name}"),
-        };
-        released += col("released").iter().sum::<i64>();
-        assert_eq!(
-            col("released")[0],
-            0,
-            "layer 0 has no earlier layer to release"
-        );
+        let per_layer = report_i64(&out, "released");
+        released += per_layer.iter().sum::<i64>();
+        assert_eq!(per_layer[0], 0, "layer 0 has no earlier layer to release");
         let p = packing(&out);
         let g = min_surface_gap(p);
         assert!(g >= 8e-6 - 1e-12, "seed {seed}: gap {g}");
         let t = 280e-6;
-        for b in &p.bodies {
-            let z = b.position[2];
-            assert!(
-                z >= b.layer as f64 * t && z <= (b.layer + 1) as f64 * t,
-                "seed {seed}: layer {} centroid z = {z}",
-                b.layer
-            );
-        }
+        assert_centroids_in_layers(p, t, &format!("seed {seed}"));
         let v = 0.5 * 560e-6 * 560e-6 * 3.0 * t;
         assert!((p.solid_volume() / v - 1.0).abs() < 1e-9);
     }
