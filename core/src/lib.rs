@@ -13,6 +13,7 @@ pub mod raster;
 pub mod registry;
 pub mod spatial;
 pub mod stage;
+pub mod subvoxel;
 pub mod suggest;
 pub mod testing;
 pub mod units;
