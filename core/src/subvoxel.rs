@@ -15,7 +15,105 @@
 //! moment of the voxel's own samples is used.
 
 use crate::model::{ComponentConvention, Field, FieldData, Grid, PhaseImage};
+use crate::{params, ParamChoice};
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// How a solver treats voxels cut by an interface.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ParamChoice)]
+#[serde(rename_all = "snake_case")]
+pub enum Interfaces {
+    /// Each voxel is the phase of its label (staircased interfaces).
+    Labels,
+    /// Voxels cut by an interface are composite voxels: a laminate of their phases along
+    /// the interface normal (Kabel, Merkert & Schneider 2015), from a `subvoxel` input or
+    /// from coarsening a finer image.
+    Composite,
+}
+
+/// The interface settings shared by the image solvers (`elasticity.fft`,
+/// `conductivity.fft`, `stokes.permeability`).
+#[params]
+pub struct InterfaceParams {
+    /// `labels`: every voxel is the phase of its label. `composite`: voxels cut by an
+    /// interface get the laminate property of their phases along the interface normal
+    /// (sub-voxel accuracy; needs the `subvoxel` input from an image maker run with
+    /// `subvoxel: true`, or coarsen 2 or 4).
+    #[param(default = Interfaces::Labels)]
+    pub interfaces: Interfaces,
+    /// Solve on the image coarsened by this factor per axis (1, 2 or 4): each coarse voxel
+    /// gets the phase fractions of its fine voxels (composite voxels for a labels-only
+    /// image such as a CT scan) and the most frequent label. The dims must be multiples.
+    #[param(default = 1, ty = "integer 1|2|4")]
+    pub coarsen: usize,
+}
+
+impl InterfaceParams {
+    /// Checks the settings against the solve: `has_subvoxel` whether the `subvoxel` input
+    /// is connected, `grid` the input image's grid. Returns the grid that is solved on.
+    pub fn check(&self, has_subvoxel: bool, grid: &Grid) -> Result<Grid, (String, String)> {
+        if ![1, 2, 4].contains(&self.coarsen) {
+            return Err((
+                "coarsen".into(),
+                format!("must be 1, 2 or 4, got {}", self.coarsen),
+            ));
+        }
+        if self.coarsen > 1 && has_subvoxel {
+            return Err((
+                "coarsen".into(),
+                "a `subvoxel` input already gives the fractions; coarsen the image or give                  the subvoxel input, not both"
+                    .into(),
+            ));
+        }
+        if self.interfaces == Interfaces::Composite && !has_subvoxel && self.coarsen == 1 {
+            return Err((
+                "interfaces".into(),
+                "composite voxels need sub-voxel geometry: connect the image maker's                  `subvoxel` output (run binder.levelset or voxelize.packing with subvoxel:                  true) to this step's `subvoxel` input, or set coarsen: 2 or 4 on a finer                  image"
+                    .into(),
+            ));
+        }
+        if grid.dims.iter().any(|&d| d % self.coarsen != 0) {
+            return Err((
+                "coarsen".into(),
+                format!(
+                    "the image's dims {:?} are not multiples of {}",
+                    grid.dims, self.coarsen
+                ),
+            ));
+        }
+        let f = self.coarsen;
+        Ok(Grid {
+            dims: grid.dims.map(|d| d / f),
+            spacing: grid.spacing.map(|s| s * f as f64),
+            origin: grid.origin,
+            periodic: grid.periodic,
+        })
+    }
+
+    /// The image to solve and its sub-voxel geometry (`None` for labels): the input image
+    /// coarsened when asked, with the `subvoxel` field when given.
+    pub fn prepare<'a>(
+        &self,
+        image: &'a PhaseImage,
+        field: Option<&Field>,
+    ) -> Result<(std::borrow::Cow<'a, PhaseImage>, Option<Subvoxel>), String> {
+        use std::borrow::Cow;
+        if self.coarsen > 1 {
+            let (coarse, sv) = coarsen(image, self.coarsen)?;
+            let sv = (self.interfaces == Interfaces::Composite).then_some(sv);
+            return Ok((Cow::Owned(coarse), sv));
+        }
+        match (self.interfaces, field) {
+            (Interfaces::Composite, Some(f)) => {
+                Ok((Cow::Borrowed(image), Some(Subvoxel::from_field(f, image)?)))
+            }
+            (Interfaces::Composite, None) => {
+                Err("interfaces: composite needs the `subvoxel` input or coarsen: 2|4".into())
+            }
+            (Interfaces::Labels, _) => Ok((Cow::Borrowed(image), None)),
+        }
+    }
+}
 
 /// Name of the sub-voxel field.
 pub const FIELD_NAME: &str = "subvoxel";

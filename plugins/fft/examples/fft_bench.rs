@@ -143,8 +143,8 @@ fn main() {
     let ctx = RunContext::new(1, &rep);
     let t = Instant::now();
     let r = match pr {
-        Precision::F64 => solve_all::<f64>(&p, &img, &m, &ctx),
-        Precision::F32 => solve_all::<f32>(&p, &img, &m, &ctx),
+        Precision::F64 => solve_all::<f64>(&p, &img, &m, None, &ctx),
+        Precision::F32 => solve_all::<f32>(&p, &img, &m, None, &ctx),
     };
     let secs = t.elapsed().as_secs_f64();
     match r {

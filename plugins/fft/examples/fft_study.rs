@@ -83,8 +83,8 @@ fn main() {
         };
         let t = Instant::now();
         let r = match prec {
-            Precision::F64 => solve_all::<f64>(&p, &img, &table, &ctx),
-            Precision::F32 => solve_all::<f32>(&p, &img, &table, &ctx),
+            Precision::F64 => solve_all::<f64>(&p, &img, &table, None, &ctx),
+            Precision::F32 => solve_all::<f32>(&p, &img, &table, None, &ctx),
         };
         let secs = t.elapsed().as_secs_f64();
         let head = format!("{n},{disc_word},{prec_word},{tol:e},{porosity:.6},{case}");

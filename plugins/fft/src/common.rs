@@ -333,3 +333,121 @@ pub fn validate_solver(
     }
     Ok(())
 }
+
+/// What building the composite voxels found, for the stage's log.
+pub struct CompositeSummary {
+    /// Voxels holding more than one phase.
+    pub mixed: usize,
+    /// Mixed voxels without an interface normal (they keep their label's material).
+    pub without_normal: usize,
+}
+
+impl CompositeSummary {
+    /// One line for the log, and a warning when mixed voxels had no normal.
+    pub fn report(&self, ctx: &grainpipe_core::RunContext, voxels: usize) {
+        ctx.info(&format!(
+            "composite voxels: {} of {voxels} voxels ({:.1} %) are mixed",
+            self.mixed,
+            100.0 * self.mixed as f64 / voxels.max(1) as f64
+        ));
+        if self.without_normal > 0 {
+            ctx.warn(&format!(
+                "{} mixed voxels have no interface normal (a lamina thinner than the \
+                 sampling, or a symmetric arrangement) and keep the material of their label",
+                self.without_normal
+            ));
+        }
+    }
+}
+
+/// The composite-voxel table of a solve: every mixed voxel of `sv` gets
+/// `law(phases, normal)` with `phases` its `(fraction, property)` pairs, `props[label]`
+/// the property of each phase.
+pub fn composite_table<P: Copy + Sync, M: Send>(
+    image: &PhaseImage,
+    sv: &grainpipe_core::subvoxel::Subvoxel,
+    props: &[P],
+    law: impl Fn(&[(f64, P)], [f64; 3]) -> M + Sync,
+) -> (crate::kernel::composite::Composite<M>, CompositeSummary) {
+    use rayon::prelude::*;
+    let n = image.labels.len();
+    let ids: Vec<usize> = image.phases.iter().map(|p| p.id as usize).collect();
+    let mixed: Vec<(usize, Option<M>)> = (0..n)
+        .into_par_iter()
+        .filter(|&v| sv.is_mixed(v))
+        .map(|v| {
+            let nrm = sv.normals[v].map(f64::from);
+            if nrm == [0.0; 3] {
+                return (v, None);
+            }
+            let phases: Vec<(f64, P)> = sv
+                .of(v)
+                .iter()
+                .zip(&ids)
+                .filter(|(f, _)| **f > 0.0)
+                .map(|(&f, &id)| (f as f64, props[id]))
+                .collect();
+            (v, Some(law(&phases, nrm)))
+        })
+        .collect();
+    let mut table = crate::kernel::composite::Composite::new(n);
+    let mut summary = CompositeSummary {
+        mixed: mixed.len(),
+        without_normal: 0,
+    };
+    for (v, m) in mixed {
+        match m {
+            Some(m) => table.push(v, m),
+            None => summary.without_normal += 1,
+        }
+    }
+    (table, summary)
+}
+
+/// An image with one voxel of every phase that holds volume somewhere (by label or by
+/// sub-voxel fraction), so that [`resolve`] asks for a property of each.
+pub fn phases_present(
+    image: &PhaseImage,
+    sv: Option<&grainpipe_core::subvoxel::Subvoxel>,
+) -> PhaseImage {
+    let mut present = [false; 256];
+    for &l in &image.labels {
+        present[l as usize] = true;
+    }
+    if let Some(sv) = sv {
+        for (k, ph) in image.phases.iter().enumerate() {
+            if (0..image.labels.len()).any(|v| sv.of(v)[k] > 0.0) {
+                present[ph.id as usize] = true;
+            }
+        }
+    }
+    PhaseImage {
+        grid: image.grid.clone(),
+        labels: (0..=255u8).filter(|&l| present[l as usize]).collect(),
+        phases: image.phases.clone(),
+    }
+}
+
+/// Preflight of the interface settings of a solver (see
+/// [`grainpipe_core::subvoxel::InterfaceParams::check`]): the grid that is solved on.
+pub fn check_interfaces(
+    p: &grainpipe_core::subvoxel::InterfaceParams,
+    scheme: Scheme,
+    inputs: &grainpipe_core::InputMetas,
+    grid: &grainpipe_core::Grid,
+) -> Result<grainpipe_core::Grid, StageError> {
+    use grainpipe_core::subvoxel::Interfaces;
+    let solved = p
+        .check(inputs.contains_key("subvoxel"), grid)
+        .map_err(|(k, m)| StageError::param(&k, m))?;
+    if p.interfaces == Interfaces::Composite && !matches!(scheme, Scheme::Hex8 | Scheme::Rotated) {
+        return Err(StageError::param(
+            "interfaces",
+            "composite voxels need discretization: hex8 (or rotated): the laminate stiffness \
+             of a voxel is applied at its element's Gauss points; the staggered grid keeps \
+             normal and shear strains at different places (measured without the couplings: \
+             no gain over labels on curved interfaces) and the spectral scheme has no element",
+        ));
+    }
+    Ok(solved)
+}

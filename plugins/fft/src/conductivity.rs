@@ -12,11 +12,15 @@ use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 use crate::common::{
-    resolve, solve_failure, unused_keys, validate_solver, Discretization, Precision, Solver,
+    check_interfaces, composite_table, phases_present, resolve, solve_failure, unused_keys,
+    validate_solver, Discretization, Precision, Solver,
 };
+use crate::kernel::composite::{laminate_conductivity, Composite};
 use crate::kernel::scalar::{bytes_per_voxel, Scalar};
 use crate::kernel::solver::{solve, SolveOptions};
 use crate::real::Real;
+use grainpipe_core::subvoxel::{InterfaceParams, Interfaces};
+use std::sync::Arc;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ParamChoice)]
 #[serde(rename_all = "snake_case")]
@@ -74,6 +78,8 @@ pub struct ConductivityParams {
     /// Floating-point precision of the fields.
     #[param(default = Precision::F64)]
     pub precision: Precision,
+    #[param(flatten)]
+    pub interface: InterfaceParams,
 }
 
 pub struct ConductivityFft;
@@ -83,8 +89,15 @@ fn memory(p: &ConductivityParams, voxels: u64) -> u64 {
         Precision::F64 => 8,
         Precision::F32 => 4,
     };
-    (bytes_per_voxel(p.discretization.scheme(), p.solver == Solver::Cg, real) * voxels as f64)
-        as u64
+    // Composite table: a 4-byte slot per voxel and a 3x3 tensor (72 bytes) per mixed
+    // voxel, counted for a mixed share of one half.
+    let composite = if p.interface.interfaces == Interfaces::Composite {
+        4.0 + 0.5 * 72.0
+    } else {
+        0.0
+    };
+    ((bytes_per_voxel(p.discretization.scheme(), p.solver == Solver::Cg, real) + composite)
+        * voxels as f64) as u64
 }
 
 impl TypedStage for ConductivityFft {
@@ -104,11 +117,19 @@ impl TypedStage for ConductivityFft {
              conduct. Fails, naming the residual, on stagnation, divergence or the \
              iteration limit. Memory: about 100 bytes per voxel for staggered CG in double precision.",
         )
-        .inputs(vec![PortSpec::new(
-            "image",
-            ArtifactKind::PhaseImage,
-            "periodic phase image (label 0 = pore unless given a value)",
-        )])
+        .inputs(vec![
+            PortSpec::new(
+                "image",
+                ArtifactKind::PhaseImage,
+                "periodic phase image (label 0 = pore unless given a value)",
+            ),
+            PortSpec::optional(
+                "subvoxel",
+                ArtifactKind::Field,
+                "with interfaces: composite, the image maker's sub-voxel geometry (phase \
+                 fractions and interface normals)",
+            ),
+        ])
         .outputs(vec![
             PortSpec::new(
                 "conductivity",
@@ -164,6 +185,7 @@ impl TypedStage for ConductivityFft {
                 ),
             ));
         }
+        let grid = check_interfaces(&p.interface, p.discretization.scheme(), inputs, &grid)?;
         let cases = p.load_cases.len() as u64;
         Ok(
             Preflight::from_info(&self.info(), memory(p, grid.voxel_count() as u64))
@@ -189,20 +211,12 @@ impl TypedStage for ConductivityFft {
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let image = input(inputs, "image", Artifact::as_phase_image)?;
-        let k = resolve("conductivities", &p.conductivities, image, 0.0, |q| {
-            Ok(q.si())
-        })?;
-        let unused = unused_keys(&p.conductivities, image);
-        if !unused.is_empty() {
-            ctx.warn(&format!(
-                "conductivities {unused:?} match no phase of the image"
-            ));
-        }
-        let (tensor, history) = match p.precision {
-            Precision::F64 => solve_all::<f64>(p, image, &k, ctx)?,
-            Precision::F32 => solve_all::<f32>(p, image, &k, ctx)?,
+        let input_image = input(inputs, "image", Artifact::as_phase_image)?;
+        let field = match inputs.get("subvoxel") {
+            Some(_) => Some(input(inputs, "subvoxel", Artifact::as_field)?),
+            None => None,
         };
+        let (tensor, history) = solve_image(p, input_image, field, ctx)?;
         let mut out = Outputs::new();
         out.insert(
             "conductivity".into(),
@@ -231,6 +245,45 @@ impl TypedStage for ConductivityFft {
     }
 }
 
+/// The conductivity of an input image with the interface settings applied (composite
+/// voxels from `field` or from coarsening) and the residual history.
+#[allow(clippy::type_complexity)]
+pub fn solve_image(
+    p: &ConductivityParams,
+    input_image: &PhaseImage,
+    field: Option<&grainpipe_core::Field>,
+    ctx: &RunContext,
+) -> Result<([[f64; 3]; 3], Vec<(String, usize, f64)>), StageError> {
+    let (image, subvoxel) = p
+        .interface
+        .prepare(input_image, field)
+        .map_err(|m| StageError::input("subvoxel", m))?;
+    let image = image.as_ref();
+    let k = resolve(
+        "conductivities",
+        &p.conductivities,
+        &phases_present(image, subvoxel.as_ref()),
+        0.0,
+        |q| Ok(q.si()),
+    )?;
+    let composite = subvoxel.map(|sv| {
+        let (table, summary) = composite_table(image, &sv, &k, laminate_conductivity);
+        summary.report(ctx, image.labels.len());
+        Arc::new(table)
+    });
+    let unused = unused_keys(&p.conductivities, image);
+    if !unused.is_empty() {
+        ctx.warn(&format!(
+            "conductivities {unused:?} match no phase of the image"
+        ));
+    }
+    let out = match p.precision {
+        Precision::F64 => solve_all::<f64>(p, image, &k, composite, ctx)?,
+        Precision::F32 => solve_all::<f32>(p, image, &k, composite, ctx)?,
+    };
+    Ok(out)
+}
+
 /// The 3x3 apparent conductivity (column j = mean flux under unit gradient j) and the
 /// residual history.
 #[allow(clippy::type_complexity)]
@@ -238,6 +291,7 @@ pub fn solve_all<T: Real>(
     p: &ConductivityParams,
     image: &PhaseImage,
     k: &[f64],
+    composite: Option<Arc<Composite<[[f64; 3]; 3]>>>,
     ctx: &RunContext,
 ) -> Result<([[f64; 3]; 3], Vec<(String, usize, f64)>), StageError> {
     let g = &image.grid;
@@ -274,6 +328,9 @@ pub fn solve_all<T: Real>(
         p.discretization.scheme(),
         reference,
     );
+    if let Some(c) = composite {
+        problem.set_composite(c);
+    }
     let opt = SolveOptions {
         method: p.solver.method(),
         tolerance: p.tolerance,

@@ -13,14 +13,17 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
 
 use crate::common::{
-    resolve, solve_failure, unused_keys, validate_solver, Discretization, Material, Precision,
-    Solver,
+    check_interfaces, composite_table, phases_present, resolve, solve_failure, unused_keys,
+    validate_solver, Discretization, Material, Precision, Solver,
 };
+use crate::kernel::composite::{laminate_stiffness, Composite, M6};
 use crate::kernel::constants::{self, Class, ENGINEERING_NAMES};
 use crate::kernel::elastic::{bytes_per_voxel, Elastic};
 use crate::kernel::solver::{solve, SolveError, SolveOptions};
 use crate::kernel::Iso;
 use crate::real::Real;
+use grainpipe_core::subvoxel::{InterfaceParams, Interfaces};
+use std::sync::Arc;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ParamChoice)]
 #[serde(rename_all = "snake_case")]
@@ -101,6 +104,8 @@ pub struct ElasticityParams {
     /// Also output the strain and stress fields (voxel centred, one per load case).
     #[param(default = false)]
     pub fields: bool,
+    #[param(flatten)]
+    pub interface: InterfaceParams,
 }
 
 pub struct ElasticityFft;
@@ -134,6 +139,11 @@ fn check_params(p: &ElasticityParams) -> Result<(), StageError> {
     Ok(())
 }
 
+/// Bytes per voxel of the composite-voxel table, shared by the load cases: a 4-byte slot
+/// per voxel and a 6x6 stiffness (288 bytes) per mixed voxel, counted for a mixed share of
+/// one half (a sand core at 8 um has about a third).
+pub const COMPOSITE_BYTES_PER_VOXEL: f64 = 4.0 + 0.5 * 288.0;
+
 /// Memory of a run [bytes].
 pub fn memory(p: &ElasticityParams, voxels: u64) -> u64 {
     let real = match p.precision {
@@ -146,6 +156,9 @@ pub fn memory(p: &ElasticityParams, voxels: u64) -> u64 {
     if p.fields {
         // 12 f64 per voxel and load case, plus the voxel values gathered per plane.
         b += 96.0 * p.load_cases.len() as f64 + 96.0;
+    }
+    if p.interface.interfaces == Interfaces::Composite {
+        b += COMPOSITE_BYTES_PER_VOXEL;
     }
     (b * voxels as f64) as u64
 }
@@ -170,11 +183,20 @@ impl TypedStage for ElasticityFft {
              stagnation, divergence, loss of positive definiteness or the iteration limit. \
              Memory: about 177 bytes per voxel per load case solved at a time (two at a time with two or more threads while one state is at most 1 GiB, about 170^3) for staggered CG in double precision, half in single.",
         )
-        .inputs(vec![PortSpec::new(
-            "image",
-            ArtifactKind::PhaseImage,
-            "periodic phase image (label 0 = pore unless given a material)",
-        )])
+        .inputs(vec![
+            PortSpec::new(
+                "image",
+                ArtifactKind::PhaseImage,
+                "periodic phase image (label 0 = pore unless given a material)",
+            ),
+            PortSpec::optional(
+                "subvoxel",
+                ArtifactKind::Field,
+                "with interfaces: composite, the image maker's sub-voxel geometry (phase \
+                 fractions and interface normals, the `subvoxel` output of binder.levelset or \
+                 voxelize.packing run with subvoxel: true)",
+            ),
+        ])
         .outputs(vec![
             PortSpec::new(
                 "stiffness",
@@ -226,6 +248,7 @@ impl TypedStage for ElasticityFft {
                 ),
             ));
         }
+        let grid = check_interfaces(&p.interface, p.discretization.scheme(), inputs, &grid)?;
         let n = grid.voxel_count() as u64;
         let cases = p.load_cases.len() as u64;
         let mut pf = Preflight::from_info(&self.info(), memory(p, n))
@@ -265,21 +288,54 @@ impl TypedStage for ElasticityFft {
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let image = input(inputs, "image", Artifact::as_phase_image)?;
-        let mats = resolve("materials", &p.materials, image, Iso::ZERO, |m| m.iso())?;
-        let unused = unused_keys(&p.materials, image);
-        if !unused.is_empty() {
-            ctx.warn(&format!(
-                "materials {unused:?} match no phase of the image (phases: {:?})",
-                image.phases.iter().map(|p| &p.name).collect::<Vec<_>>()
-            ));
-        }
-        let result = match p.precision {
-            Precision::F64 => solve_all::<f64>(p, image, &mats, ctx)?,
-            Precision::F32 => solve_all::<f32>(p, image, &mats, ctx)?,
+        let input_image = input(inputs, "image", Artifact::as_phase_image)?;
+        let field = match inputs.get("subvoxel") {
+            Some(_) => Some(input(inputs, "subvoxel", Artifact::as_field)?),
+            None => None,
         };
-        outputs(p, image, result)
+        let (image, result) = solve_image(p, input_image, field, ctx)?;
+        outputs(p, &image, result)
     }
+}
+
+/// The image that is solved (the input, or its coarsening) and the solve: the interface
+/// settings applied (composite voxels from `field` or from coarsening), the materials
+/// resolved for every phase that holds volume, all load cases solved.
+pub fn solve_image<'a>(
+    p: &ElasticityParams,
+    input_image: &'a PhaseImage,
+    field: Option<&Field>,
+    ctx: &RunContext,
+) -> Result<(std::borrow::Cow<'a, PhaseImage>, ElasticResult), StageError> {
+    let (image, subvoxel) = p
+        .interface
+        .prepare(input_image, field)
+        .map_err(|m| StageError::input("subvoxel", m))?;
+    let solved = image.as_ref();
+    let mats = resolve(
+        "materials",
+        &p.materials,
+        &phases_present(solved, subvoxel.as_ref()),
+        Iso::ZERO,
+        |m| m.iso(),
+    )?;
+    let composite = subvoxel.map(|sv| {
+        let (table, summary) = composite_table(solved, &sv, &mats, laminate_stiffness);
+        summary.report(ctx, solved.labels.len());
+        Arc::new(table)
+    });
+    let unused = unused_keys(&p.materials, solved);
+    if !unused.is_empty() {
+        ctx.warn(&format!(
+            "materials {unused:?} match no phase of the image (phases: {:?})",
+            solved.phases.iter().map(|p| &p.name).collect::<Vec<_>>()
+        ));
+    }
+    let result = match p.precision {
+        Precision::F64 => solve_all::<f64>(p, solved, &mats, composite, ctx)?,
+        Precision::F32 => solve_all::<f32>(p, solved, &mats, composite, ctx)?,
+    };
+    Ok((image, result))
 }
 
 /// Everything the load cases give.
@@ -363,6 +419,7 @@ pub fn solve_all<T: Real>(
     p: &ElasticityParams,
     image: &PhaseImage,
     mats: &[Iso],
+    composite: Option<Arc<Composite<M6>>>,
     ctx: &RunContext,
 ) -> Result<ElasticResult, StageError> {
     let g = &image.grid;
@@ -413,6 +470,9 @@ pub fn solve_all<T: Real>(
                 scheme,
                 reference,
             );
+            if let Some(c) = &composite {
+                problem.set_composite(c.clone());
+            }
             if lane == 0 {
                 ctx.info(&format!(
                     "{}x{}x{} voxels, {:?} + {:?}, setup {:.2} s, {lanes} load case(s) at a time",

@@ -23,7 +23,7 @@ fn conductivity(img: &PhaseImage, k: &[(u8, f64)], d: Discretization, tol: f64) 
     .unwrap();
     let rep = SilentReporter;
     let ctx = RunContext::new(1, &rep);
-    solve_all::<f64>(&p, img, &kl, &ctx).unwrap().0
+    solve_all::<f64>(&p, img, &kl, None, &ctx).unwrap().0
 }
 
 #[test]

@@ -1,6 +1,7 @@
 //! Numerical kernels, free of framework types: discretized cell problems, the reference
 //! Green operators applied by FFT, the solvers, and the post-processing of stiffness tensors.
 
+pub mod composite;
 pub mod constants;
 pub mod elastic;
 pub mod scalar;

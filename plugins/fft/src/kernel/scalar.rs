@@ -11,10 +11,12 @@
 use num_complex::Complex;
 use rayon::prelude::*;
 
+use super::composite::Composite;
 use super::solver::CellProblem;
 use super::{edge_weights, gauss_points, nodal_gradient, AxisTables, Scheme, C64};
 use crate::fft3::Fft3;
 use crate::real::Real;
+use std::sync::Arc;
 
 /// Bytes per voxel of the solver state (as [`super::elastic::bytes_per_voxel`]).
 pub fn bytes_per_voxel(scheme: Scheme, cg: bool, real: usize) -> f64 {
@@ -44,6 +46,8 @@ pub struct Scalar<T: Real> {
     scratch: Vec<T>,
     gauss: Vec<([f64; 3], f64)>,
     tables: [AxisTables; 3],
+    /// Composite voxels (laminate conductivity tensors), `None` for a labels-only image.
+    composite: Option<Arc<Composite<[[f64; 3]; 3]>>>,
 }
 
 impl<T: Real> Scalar<T> {
@@ -86,6 +90,7 @@ impl<T: Real> Scalar<T> {
             scratch: vec![T::zero(); scratch_n],
             gauss: gauss_points(scheme),
             tables,
+            composite: None,
         };
         if scheme == Scheme::Staggered {
             p.face_k = p.face_conductivities();
@@ -97,6 +102,33 @@ impl<T: Real> Scalar<T> {
     #[inline(always)]
     fn idx(&self, x: usize, y: usize, z: usize) -> usize {
         x + self.dims[0] * (y + self.dims[1] * z)
+    }
+
+    /// Gives the voxels of `composite` their laminate conductivity tensor, applied at the
+    /// Gauss points of the nodal schemes (hex8, rotated); see
+    /// [`super::elastic::Elastic::set_composite`] for why the other schemes are refused.
+    pub fn set_composite(&mut self, composite: Arc<Composite<[[f64; 3]; 3]>>) {
+        assert_eq!(composite.slot.len(), self.n);
+        assert!(
+            self.scheme != Scheme::Spectral,
+            "composite voxels need a local scheme"
+        );
+        self.composite = Some(composite);
+        if self.scheme == Scheme::Staggered {
+            self.face_k = self.face_conductivities();
+        }
+    }
+
+    /// Conductivity tensor of voxel `v`.
+    #[inline]
+    fn voxel_k(&self, v: usize) -> [[f64; 3]; 3] {
+        match self.composite.as_ref().and_then(|c| c.get(v)) {
+            Some(k) => *k,
+            None => {
+                let k = self.kf[self.labels[v] as usize];
+                [[k, 0.0, 0.0], [0.0, k, 0.0], [0.0, 0.0, k]]
+            }
+        }
     }
 
     /// Harmonic mean of the two voxels of each face (`i + e_d / 2`): exact in series.
@@ -272,11 +304,13 @@ impl<T: Real> Scalar<T> {
                     let yp = (y + 1) % ny;
                     for x in 0..nx {
                         let xp = (x + 1) % nx;
-                        let l = this.labels[this.idx(x, y, z)] as usize;
-                        let k = this.k[l];
-                        if k == T::zero() {
+                        let v = this.idx(x, y, z);
+                        let kc = this.composite.as_ref().and_then(|c| c.get(v));
+                        let k = this.k[this.labels[v] as usize];
+                        if kc.is_none() && k == T::zero() {
                             continue;
                         }
+                        let kt: Option<[[T; 3]; 3]> = kc.map(|m| m.map(|r| r.map(T::of)));
                         let nodes = [
                             this.idx(x, y, z),
                             this.idx(xp, y, z),
@@ -301,13 +335,21 @@ impl<T: Real> Scalar<T> {
                         let mut f = [[T::zero(); 4]; 3];
                         for (wt, w) in &gauss {
                             let ws = edge_weights(wt);
-                            for ax in 0..3 {
-                                let gr = d[ax][0] * ws[ax][0]
+                            let gr: [T; 3] = std::array::from_fn(|ax| {
+                                d[ax][0] * ws[ax][0]
                                     + d[ax][1] * ws[ax][1]
                                     + d[ax][2] * ws[ax][2]
                                     + d[ax][3] * ws[ax][3]
-                                    + g[ax];
-                                let q = *w * k * gr;
+                                    + g[ax]
+                            });
+                            for ax in 0..3 {
+                                let flux = match &kt {
+                                    Some(m) => {
+                                        m[ax][0] * gr[0] + m[ax][1] * gr[1] + m[ax][2] * gr[2]
+                                    }
+                                    None => k * gr[ax],
+                                };
+                                let q = *w * flux;
                                 for e in 0..4 {
                                     f[ax][e] = f[ax][e] + q * ws[ax][e];
                                 }
@@ -458,6 +500,7 @@ impl<T: Real> Scalar<T> {
         let n = self.n;
         let i = self.idx(x, y, z);
         let k = self.kf[self.labels[i] as usize];
+        let kt = self.voxel_k(i);
         let tv = |j: usize| t[j].f64();
         match self.scheme {
             Scheme::Staggered => {
@@ -495,6 +538,7 @@ impl<T: Real> Scalar<T> {
                 ];
                 let mut q = [0.0; 3];
                 for &(p, w) in &self.gauss {
+                    let mut gr = [load[0], load[1], load[2]];
                     for (m, &node) in nodes.iter().enumerate() {
                         let (dx, dy, dz) = (m & 1, (m >> 1) & 1, (m >> 2) & 1);
                         let s = |d: usize, t: f64| if d == 1 { t } else { 1.0 - t };
@@ -505,11 +549,11 @@ impl<T: Real> Scalar<T> {
                             ds(dz) / self.h[2] * s(dx, p[0]) * s(dy, p[1]),
                         ];
                         for d in 0..3 {
-                            q[d] += w * k * grad[d] * tv(node);
+                            gr[d] += grad[d] * tv(node);
                         }
                     }
                     for d in 0..3 {
-                        q[d] += w * k * load[d];
+                        q[d] += w * (kt[d][0] * gr[0] + kt[d][1] * gr[1] + kt[d][2] * gr[2]);
                     }
                 }
                 q

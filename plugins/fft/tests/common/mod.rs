@@ -72,8 +72,8 @@ pub fn stiffness(img: &PhaseImage, p: &ElasticityParams) -> Result<ElasticResult
     let rep = SilentReporter;
     let ctx = RunContext::new(1, &rep);
     match p.precision {
-        grainpipe_fft::common::Precision::F64 => solve_all::<f64>(p, img, &mats, &ctx),
-        grainpipe_fft::common::Precision::F32 => solve_all::<f32>(p, img, &mats, &ctx),
+        grainpipe_fft::common::Precision::F64 => solve_all::<f64>(p, img, &mats, None, &ctx),
+        grainpipe_fft::common::Precision::F32 => solve_all::<f32>(p, img, &mats, None, &ctx),
     }
 }
 
