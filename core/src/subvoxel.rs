@@ -314,54 +314,70 @@ pub fn sample<F>(image: &PhaseImage, samples: usize, phase_at: F) -> Result<Subv
 where
     F: Fn([f64; 3]) -> usize + Sync,
 {
-    let mut sv = Subvoxel::from_labels(image)?;
     let grid = &image.grid;
     let cand = interface_candidates(grid, &image.labels);
-    let p = sv.phases;
-    let s = samples.max(1);
-    let h = grid.spacing;
-    // (fractions, first moment of each phase relative to the voxel centre) per voxel.
-    let sampled: Vec<(usize, Vec<f32>, Vec<[f64; 3]>)> = (0..image.labels.len())
+    let [nx, ny, _] = grid.dims;
+    let sampled: Vec<VoxelSamples> = (0..image.labels.len())
         .into_par_iter()
         .filter(|&v| cand[v])
         .map(|v| {
-            let [nx, ny, _] = grid.dims;
-            let (x, y, z) = (v % nx, (v / nx) % ny, v / (nx * ny));
-            let c = grid.voxel_center(x, y, z);
-            let mut count = vec![0u32; p];
-            let mut moment = vec![[0.0f64; 3]; p];
-            for k in 0..s {
-                for j in 0..s {
-                    for i in 0..s {
-                        let off = [i, j, k]
-                            .map(|t| (t as f64 + 0.5) / s as f64 - 0.5)
-                            .iter()
-                            .zip(h)
-                            .map(|(o, h)| o * h)
-                            .collect::<Vec<_>>();
-                        let pt = [c[0] + off[0], c[1] + off[1], c[2] + off[2]];
-                        let ph = phase_at(pt).min(p - 1);
-                        count[ph] += 1;
-                        for a in 0..3 {
-                            moment[ph][a] += off[a];
-                        }
-                    }
-                }
-            }
-            let total = (s * s * s) as f32;
-            (v, count.iter().map(|&c| c as f32 / total).collect(), moment)
+            let c = grid.voxel_center(v % nx, (v / nx) % ny, v / (nx * ny));
+            (
+                v,
+                sample_voxel(c, grid.spacing, samples, image.phases.len(), &phase_at),
+            )
         })
         .collect();
-    let mut moments = vec![];
-    for (v, f, m) in sampled {
-        sv.fractions[v * p..(v + 1) * p].copy_from_slice(&f);
-        moments.push((v, m));
+    from_samples(image, sampled)
+}
+
+/// What sampling one voxel gives: its index and, per phase, the share of sub-samples and
+/// their first moment relative to the voxel centre [m].
+pub type VoxelSamples = (usize, (Vec<f32>, Vec<[f64; 3]>));
+
+/// Samples one voxel (centre `c`, edges `h`) at `samples^3` points: per phase (`phases` of
+/// them) the share of points and their first moment about the centre.
+pub fn sample_voxel(
+    c: [f64; 3],
+    h: [f64; 3],
+    samples: usize,
+    phases: usize,
+    phase_at: impl Fn([f64; 3]) -> usize,
+) -> (Vec<f32>, Vec<[f64; 3]>) {
+    let s = samples.max(1);
+    let mut count = vec![0u32; phases];
+    let mut moment = vec![[0.0f64; 3]; phases];
+    for k in 0..s * s * s {
+        let sub = [k % s, (k / s) % s, k / (s * s)];
+        let off: [f64; 3] =
+            std::array::from_fn(|a| ((sub[a] as f64 + 0.5) / s as f64 - 0.5) * h[a]);
+        let ph = phase_at([c[0] + off[0], c[1] + off[1], c[2] + off[2]]).min(phases - 1);
+        count[ph] += 1;
+        for a in 0..3 {
+            moment[ph][a] += off[a];
+        }
     }
-    set_normals(grid, &mut sv, |v| {
-        moments
-            .binary_search_by_key(&v, |(w, _)| *w)
+    let total = (s * s * s) as f32;
+    (count.iter().map(|&c| c as f32 / total).collect(), moment)
+}
+
+/// The sub-voxel description from the samples of some voxels (the others keep their
+/// label), normals as in the module doc. `sampled` in any order.
+pub fn from_samples(
+    image: &PhaseImage,
+    mut sampled: Vec<VoxelSamples>,
+) -> Result<Subvoxel, String> {
+    let mut sv = Subvoxel::from_labels(image)?;
+    let p = sv.phases;
+    sampled.sort_by_key(|s| s.0);
+    for (v, (f, _)) in &sampled {
+        sv.fractions[v * p..(v + 1) * p].copy_from_slice(f);
+    }
+    set_normals(&image.grid, &mut sv, |v| {
+        sampled
+            .binary_search_by_key(&v, |s| s.0)
             .ok()
-            .map(|i| moments[i].1.clone())
+            .map(|i| sampled[i].1 .1.clone())
     });
     Ok(sv)
 }
