@@ -74,13 +74,11 @@ impl Cell {
     }
 }
 
+/// The closest sphere pair found so far for a grain pair: gap, normal, contact point.
+type Closest = Option<(f64, [f64; 3], [f64; 3])>;
+
 /// Keeps the closer of two candidate sphere pairs; on an exact tie the first one found.
-fn closer(
-    best: &mut Option<(f64, [f64; 3], [f64; 3])>,
-    gap: f64,
-    normal: [f64; 3],
-    point: [f64; 3],
-) {
+fn closer(best: &mut Closest, gap: f64, normal: [f64; 3], point: [f64; 3]) {
     if best.is_none_or(|b| gap < b.0) {
         *best = Some((gap, normal, point));
     }
@@ -128,7 +126,7 @@ pub fn near_pairs(s: Spheres, cell: Cell, cutoff: f64) -> Vec<NearPair> {
     let per_body: Vec<Vec<NearPair>> = (0..nb)
         .into_par_iter()
         .map(|i| {
-            let mut best: HashMap<u32, Option<(f64, [f64; 3], [f64; 3])>> = HashMap::new();
+            let mut best: HashMap<u32, Closest> = HashMap::new();
             for &a in &of_body[i] {
                 let (pa, ra) = (wrapped[a as usize], s.radii[a as usize]);
                 cells.visit(pa, ra + rmax + cutoff, |b, img| {
@@ -178,7 +176,7 @@ pub fn near_pairs_brute(s: Spheres, cell: Cell, cutoff: f64) -> Vec<NearPair> {
             0
         }
     });
-    let mut best: HashMap<(u32, u32), Option<(f64, [f64; 3], [f64; 3])>> = HashMap::new();
+    let mut best: HashMap<(u32, u32), Closest> = HashMap::new();
     for a in 0..n {
         for b in 0..n {
             let (i, j) = (s.body[a], s.body[b]);

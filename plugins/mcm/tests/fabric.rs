@@ -75,7 +75,10 @@ fn simple_cubic_lattice_has_six_contacts_and_an_isotropic_fabric() {
 /// along x at spacing 2 (side by side, touching), 3 rows along y at spacing 2.5 (gap 0.5).
 /// Layer l holds the rods at z = 3 + 6 l (thickness 6). Three per column so that the rods
 /// above and below are different grains (a pair touching at two places is one near-contact).
-fn rods() -> (Vec<[f64; 3]>, Vec<f64>, Vec<u32>, Vec<u32>, Cell) {
+/// Centres, radii, body of each sphere, layer of each body, cell.
+type Rods = (Vec<[f64; 3]>, Vec<f64>, Vec<u32>, Vec<u32>, Cell);
+
+fn rods() -> Rods {
     let (mut c, mut b, mut layer) = (Vec::new(), Vec::new(), Vec::new());
     let mut body = 0;
     for (l, zc) in [3.0, 9.0, 15.0].into_iter().enumerate() {
