@@ -892,6 +892,19 @@ pub struct ArtifactMeta {
     /// The exact mean volume-equivalent body diameter of a packing [m], when the parameters
     /// fix it (equal spheres). Checked to 1e-9 relative.
     pub mean_diameter: Option<f64>,
+    /// Per-item sizes of a grain collection or clump library when preflight knows them
+    /// (e.g. from coefficient files), for downstream preflight checks such as a size cap.
+    /// Estimates, not checked.
+    pub item_sizes: Option<Vec<ItemSize>>,
+}
+
+/// What preflight knows of one grain: its name, volume [m^3] and bounding-sphere diameter
+/// about its centroid [m].
+#[derive(Clone, Debug, PartialEq)]
+pub struct ItemSize {
+    pub name: String,
+    pub volume: f64,
+    pub bounding_diameter: f64,
 }
 
 impl ArtifactMeta {
@@ -905,6 +918,7 @@ impl ArtifactMeta {
             periodic: None,
             length_scale: None,
             mean_diameter: None,
+            item_sizes: None,
         }
     }
 

@@ -273,6 +273,34 @@ impl StarShape {
         (vol.abs(), area)
     }
 
+    /// Radius of the smallest sphere about the solid's centroid (of the triangulated table
+    /// surface, error O(grid step^2)) that holds every table vertex: half the grain's
+    /// bounding diameter as `clumps.garcia` measures it about the clump's centroid.
+    pub fn bounding_radius(&self) -> f64 {
+        let (nt, np) = (self.table.nt, self.table.np);
+        let vx = self.vertices();
+        let (mut vol, mut m) = (0.0, Vector3::zeros());
+        for i in 0..nt {
+            for j in 0..np {
+                let j1 = (j + 1) % np;
+                let (a, b, c, d) = (
+                    vx[i * np + j],
+                    vx[(i + 1) * np + j],
+                    vx[(i + 1) * np + j1],
+                    vx[i * np + j1],
+                );
+                for (p, q, r) in [(a, b, c), (a, c, d)] {
+                    // Tetrahedron (origin, p, q, r): signed volume, centroid (p + q + r) / 4.
+                    let v = p.dot(&q.cross(&r)) / 6.0;
+                    vol += v;
+                    m += (p + q + r) * (v / 4.0);
+                }
+            }
+        }
+        let c = if vol.abs() > 0.0 { m / vol } else { m };
+        vx.iter().map(|v| (v - c).norm()).fold(0.0, f64::max)
+    }
+
     /// Axis-aligned bounding box of the table vertices.
     pub fn bbox(&self) -> ([f64; 3], [f64; 3]) {
         let mut lo = [f64::INFINITY; 3];

@@ -3,6 +3,7 @@
 //! Algorithm 2. See docs/stages/mcm.md.
 
 pub mod engine;
+pub mod fabric;
 pub mod pack;
 pub mod stages;
 

@@ -293,6 +293,8 @@ pub struct RunStats {
     /// Grains of earlier (frozen) layers released to move with the layer being packed after
     /// it got stuck (see `release_contacts`).
     pub released: usize,
+    /// Which grains those are (indices into the system's grains).
+    pub released_grains: Vec<usize>,
     pub energy: f64,
     pub max_delta: f64,
     pub worst: Worst,
@@ -639,6 +641,7 @@ fn contract_phases(
         if released.is_empty() {
             released = release_contacts(sys, mode, s_new);
             st.released = released.len();
+            st.released_grains = released.clone();
         }
         // A stuck step is a quench that jammed: thermalise it at its size and relax again
         // (System::anneal) before giving the step up; each cycle counts its Langevin steps

@@ -1,9 +1,13 @@
 //! The stages `mcm.classic` and `mcm.stacked`.
 
 use crate::engine::{EnergyKind, Grain, Minimiser, Relaxation, Shape, System};
+use crate::fabric::{
+    anisotropy_z, counts, deviator_norm, fabric, histogram, layer_stats, near_pairs, Cell,
+    LayerStats, Layering, Spheres,
+};
 use crate::pack::{
     contract, mean_sphere_volume, place_all, quat, sphere_volume, sphere_volume_range, uniform, v3,
-    FailReason, Mode, Pick, RunFailure, RunStats, Schedule, Source,
+    FailReason, Mode, Outcome, Pick, RunFailure, RunStats, Schedule, Source,
 };
 use grainpipe_core::distributions::SizeDistribution;
 use grainpipe_core::spatial::random_quaternion;
@@ -73,6 +77,23 @@ pub struct ContractionParams {
     /// units of the grain's bounding radius.
     #[param(default = Relaxation::default().step_sizes)]
     pub step_sizes: [f64; 2],
+    /// Microstructure statistics (report columns): two grains are in near-contact when their
+    /// gap (closest sphere surfaces, periodic images included) is at most min_gap plus this.
+    // 1 um: the minimiser leaves pairs it pushed apart within tolerance x mean bounding
+    // radius (about 0.1 um for the sand) of min_gap, so a tolerance must exceed that; 1 um is
+    // ten times more, 1/8 of the paper's 8 um gap and a quarter of the finest voxel the
+    // pipelines use (4 um), so a pair within it is, in any image made of the packing, as
+    // close as a pair at the gap (issue 31).
+    #[param(default = Q::new(1e-6))]
+    pub contact_tolerance: Q<Length>,
+    /// Microstructure statistics: grains whose gap is at most this count as bridged (the
+    /// report's bridges per grain).
+    // 11 um: two surfaces a gap g apart get a level-set binder bridge when g <= 2 a ln 2
+    // (LSE_a of two equal distances g/2 is g/2 - a ln 2); binder.levelset at the shipped 2 %
+    // binder over grains finds a = 7.7 um on the paper's stacked packing (docs/stages/binder.md),
+    // 2 a ln 2 = 10.7 um.
+    #[param(default = Q::new(11e-6))]
+    pub bridge_distance: Q<Length>,
 }
 
 #[params]
@@ -209,6 +230,34 @@ impl ContractionParams {
         self.radius
             .validate()
             .map_err(|(k, m)| StageError::param(&format!("radius.{k}"), m))?;
+        let tol = self.contact_tolerance.si();
+        if !(tol.is_finite() && tol >= 0.0) {
+            return Err(StageError::param(
+                "contact_tolerance",
+                format!("must be a length >= 0, got {tol} m"),
+            ));
+        }
+        let bridge = self.bridge_distance.si();
+        if !(bridge.is_finite() && bridge >= 0.0) {
+            return Err(StageError::param(
+                "bridge_distance",
+                format!("must be a length >= 0, got {bridge} m"),
+            ));
+        }
+        // The neighbour search reaches this far: like min_gap, a bare number is metres.
+        if let Some(l) = [tol, bridge].into_iter().find(|&x| x >= 1e-2) {
+            return Err(StageError::param(
+                if l == tol {
+                    "contact_tolerance"
+                } else {
+                    "bridge_distance"
+                },
+                format!(
+                    "{} is not a gap between grains (a bare number is metres; write e.g. `11 um`)",
+                    fmt_len(l)
+                ),
+            ));
+        }
         Ok(())
     }
 
@@ -343,10 +392,106 @@ struct Row {
     stats: RunStats,
     time: f64,
     fraction: f64,
+    /// Earlier layers whose grains this layer released (sorted, stacked only).
+    released_layers: Vec<usize>,
 }
 
-fn report(rows: &[Row]) -> Table {
+/// The microstructure statistics of a finished packing (issue 31): near pairs within reach
+/// of either threshold, per-layer statistics, the whole packing's contact fabric and the
+/// per-layer mean <n_z n_z> of the grains' long axes.
+struct Micro {
+    layers: Vec<LayerStats>,
+    fabric: Option<[f64; 9]>,
+    orientation_zz: Vec<f64>,
+    /// Near-contact threshold min_gap + contact_tolerance [m].
+    contact: f64,
+    bridge: f64,
+    histogram: (Vec<u64>, Vec<u64>),
+}
+
+fn microstructure(
+    packing: &Packing,
+    axes: &[[f64; 3]],
+    layers: usize,
+    thickness: f64,
+    min_gap: f64,
+    c: &ContractionParams,
+) -> Micro {
+    let ws = packing.world_spheres();
+    let centres: Vec<[f64; 3]> = ws.iter().map(|w| w.center).collect();
+    let radii: Vec<f64> = ws.iter().map(|w| w.radius).collect();
+    let body: Vec<u32> = ws.iter().map(|w| w.body as u32).collect();
+    let d = &packing.domain;
+    let cell = Cell {
+        min: d.min,
+        len: d.size(),
+        periodic: d.periodic,
+    };
+    let contact = min_gap + c.contact_tolerance.si();
+    let bridge = c.bridge_distance.si();
+    let pairs = near_pairs(
+        Spheres {
+            centres: &centres,
+            radii: &radii,
+            body: &body,
+        },
+        cell,
+        contact.max(bridge),
+    );
+    let layer: Vec<u32> = packing.bodies.iter().map(|b| b.layer).collect();
+    let per_layer = layer_stats(
+        &pairs,
+        Layering {
+            layer: &layer,
+            layers,
+            z_min: d.min[2],
+            thickness,
+            periodic_z: d.periodic[2],
+        },
+        contact,
+        bridge,
+    );
+    let n = packing.bodies.len();
+    let orientation_zz = (0..layers)
+        .map(|l| {
+            let zz: Vec<f64> = (0..axes.len().min(n))
+                .filter(|&b| layer[b] as usize == l)
+                .map(|b| axes[b][2] * axes[b][2])
+                .collect();
+            if axes.is_empty() {
+                1.0 / 3.0
+            } else if zz.is_empty() {
+                f64::NAN
+            } else {
+                zz.iter().sum::<f64>() / zz.len() as f64
+            }
+        })
+        .collect();
+    Micro {
+        layers: per_layer,
+        fabric: fabric(pairs.iter().filter(|p| p.gap <= contact).map(|p| &p.normal)),
+        orientation_zz,
+        contact,
+        bridge,
+        histogram: (
+            histogram(counts(&pairs, n, contact)),
+            histogram(counts(&pairs, n, bridge)),
+        ),
+    }
+}
+
+/// A histogram as text: the counts for 0, 1, 2, ... separated by spaces.
+fn histogram_text(h: &[u64]) -> String {
+    h.iter()
+        .map(|x| x.to_string())
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+fn report(rows: &[Row], m: &Micro) -> Table {
     let ints = |f: fn(&Row) -> usize| rows.iter().map(|r| f(r) as i64).collect();
+    let per = |f: &dyn Fn(&LayerStats) -> f64| m.layers.iter().map(f).collect::<Vec<f64>>();
+    let of = |t: &Option<[f64; 9]>, f: fn(&[f64; 9]) -> f64| t.as_ref().map_or(f64::NAN, f);
     Table::new("mcm")
         .with_i64("layer", "1", (0..rows.len() as i64).collect())
         .with_i64("grains", "1", ints(|r| r.grains))
@@ -368,6 +513,208 @@ fn report(rows: &[Row]) -> Table {
             rows.iter().map(|r| r.stats.max_delta).collect(),
         )
         .with_f64("fraction", "1", rows.iter().map(|r| r.fraction).collect())
+        .with_f64("near_contacts_per_grain", "1", per(&|l| l.near_per_grain))
+        .with_str(
+            "near_contact_histogram",
+            m.layers
+                .iter()
+                .map(|l| histogram_text(&l.near_histogram))
+                .collect(),
+        )
+        .with_f64("bridges_per_grain", "1", per(&|l| l.bridges_per_grain))
+        .with_str(
+            "bridge_histogram",
+            m.layers
+                .iter()
+                .map(|l| histogram_text(&l.bridge_histogram))
+                .collect(),
+        )
+        .with_i64(
+            "layer_contacts",
+            "1",
+            m.layers.iter().map(|l| l.contacts as i64).collect(),
+        )
+        .with_f64("fabric_xx", "1", per(&|l| of(&l.fabric, |t| t[0])))
+        .with_f64("fabric_yy", "1", per(&|l| of(&l.fabric, |t| t[4])))
+        .with_f64("fabric_zz", "1", per(&|l| of(&l.fabric, |t| t[8])))
+        .with_f64(
+            "fabric_anisotropy_z",
+            "1",
+            per(&|l| of(&l.fabric, anisotropy_z)),
+        )
+        .with_f64(
+            "fabric_deviator",
+            "1",
+            per(&|l| of(&l.fabric, deviator_norm)),
+        )
+        .with_i64(
+            "interface_contacts",
+            "1",
+            m.layers
+                .iter()
+                .map(|l| l.interface_contacts as i64)
+                .collect(),
+        )
+        .with_f64(
+            "interface_fabric_zz",
+            "1",
+            per(&|l| of(&l.interface_fabric, |t| t[8])),
+        )
+        .with_f64(
+            "interface_anisotropy_z",
+            "1",
+            per(&|l| of(&l.interface_fabric, anisotropy_z)),
+        )
+        .with_f64("orientation_zz", "1", m.orientation_zz.clone())
+}
+
+/// The whole packing's distribution of near-contacts and bridges per grain: one row per
+/// count k = 0, 1, ... with the grains having exactly k of each.
+fn contacts_table(m: &Micro) -> Table {
+    let (near, bridges) = &m.histogram;
+    let k = near.len().max(bridges.len()).max(1);
+    let col = |h: &[u64]| (0..k).map(|i| *h.get(i).unwrap_or(&0) as i64).collect();
+    Table::new("mcm_contacts")
+        .with_i64("contacts", "1", (0..k as i64).collect())
+        .with_i64("near_contact_grains", "1", col(near))
+        .with_i64("bridge_grains", "1", col(bridges))
+}
+
+fn fabric_tensor(m: &Micro) -> Tensor {
+    Tensor {
+        name: "contact_fabric".into(),
+        unit: "1".into(),
+        shape: vec![3, 3],
+        // No near-contact at all: NaN (an empty average), not a made-up isotropic tensor.
+        values: m.fabric.map_or(vec![f64::NAN; 9], |t| t.to_vec()),
+        convention: TensorConvention::Plain,
+    }
+}
+
+/// Names the paths beyond Algorithm 2 a layer took (empty: none).
+fn fallbacks(r: &Row) -> Vec<String> {
+    let mut v = Vec::new();
+    if r.tries > 1 {
+        v.push(format!(
+            "{} restart{} (placed afresh)",
+            r.tries - 1,
+            if r.tries == 2 { "" } else { "s" }
+        ));
+    }
+    if r.stats.released > 0 {
+        v.push(format!(
+            "{} grains of earlier layers released",
+            r.stats.released
+        ));
+    }
+    let annealed = r
+        .stats
+        .history
+        .iter()
+        .filter(|h| matches!(h.outcome, Outcome::Annealed | Outcome::AnnealFailed))
+        .count();
+    if annealed > 0 {
+        v.push(format!(
+            "{annealed} thermalisation{} of stuck steps",
+            if annealed == 1 { "" } else { "s" }
+        ));
+    }
+    if r.stats.shakes > 0 {
+        v.push(format!(
+            "{} shake{}",
+            r.stats.shakes,
+            if r.stats.shakes == 1 { "" } else { "s" }
+        ));
+    }
+    v
+}
+
+/// Near-contacts per grain of the shipped sand packed without any fallback in the paper's
+/// setting (pipelines/mcm.yaml: two (560 um)^2 x 280 um layers at 50 %, 8 um gap, periodic
+/// in x, y, z; gap <= 9 um): seeds 1, 2 and 8 of 1-8, the three that took no fallback, give
+/// 6.52 and 6.69, 6.60 and 6.56, 6.94 and 6.32 per layer, mean 6.60. The five others
+/// released the first layer's grains when packing the second: 2.10-3.81 in both layers.
+const TYPICAL_SAND_NEAR_CONTACTS: f64 = 6.6;
+
+/// "No silent outliers" (issue 31): one warning per layer that took a path beyond
+/// Algorithm 2, with its near-contacts per grain (and those of the earlier layers whose
+/// grains it released and moved) next to the layers of the same run that neither took one
+/// nor were moved by one (grain-weighted mean), or, when there is none, next to the value
+/// of the shipped sand packed without fallbacks.
+fn warn_fallbacks(ctx: &RunContext, what: &str, rows: &[Row], m: &Micro) {
+    let paths: Vec<Vec<String>> = rows.iter().map(fallbacks).collect();
+    let moved: Vec<bool> = (0..rows.len())
+        .map(|l| rows.iter().any(|r| r.released_layers.contains(&l)))
+        .collect();
+    let clean: Vec<usize> = (0..rows.len())
+        .filter(|&l| paths[l].is_empty() && !moved[l])
+        .collect();
+    let mean_over = |ls: &[usize]| {
+        let g: usize = ls.iter().map(|&l| m.layers[l].grains).sum();
+        (g > 0).then(|| {
+            ls.iter()
+                .map(|&l| m.layers[l].near_per_grain * m.layers[l].grains as f64)
+                .sum::<f64>()
+                / g as f64
+        })
+    };
+    let list = |ls: &[usize]| {
+        ls.iter()
+            .map(|l| l.to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    for (l, p) in paths.iter().enumerate() {
+        if p.is_empty() {
+            continue;
+        }
+        let layer = if rows.len() > 1 {
+            format!("{what}, layer {l}")
+        } else {
+            what.to_string()
+        };
+        let others: Vec<usize> = rows[l]
+            .released_layers
+            .iter()
+            .copied()
+            .filter(|&k| k != l)
+            .collect();
+        let moved_too = match mean_over(&others) {
+            Some(x) => format!(
+                "; the earlier layer{} whose grains it released and moved ({}) end{} with {x:.2}",
+                if others.len() == 1 { "" } else { "s" },
+                list(&others),
+                if others.len() == 1 { "s" } else { "" },
+            ),
+            None => String::new(),
+        };
+        let versus = match mean_over(&clean) {
+            Some(x) => format!(
+                "against {x:.2} in the layer{} of this run that neither took a fallback nor \
+                 had grains moved by one ({})",
+                if clean.len() == 1 { "" } else { "s" },
+                list(&clean)
+            ),
+            None => format!(
+                "and no layer of this run is free of fallbacks to compare with; the shipped sand \
+                 in the paper's setting (pipelines/mcm.yaml) packed without fallbacks has \
+                 {TYPICAL_SAND_NEAR_CONTACTS:.1} near-contacts per grain, with them 2.1-3.8 \
+                 (docs/stages/mcm.md, microstructure statistics; other grains and fractions differ)"
+            ),
+        };
+        ctx.warn(&format!(
+            "{layer} took paths beyond the paper's Algorithm 2 ({}): its grains end with {:.2} \
+             near-contacts per grain (gap <= {:.2} um = min_gap + contact_tolerance) and {:.2} \
+             within the bridge distance {:.2} um{moved_too}, {versus}. Fewer near-contacts mean \
+             a looser contact network (issue 31: such packings were about half as stiff); the \
+             report's microstructure columns give the details",
+            p.join(", "),
+            m.layers[l].near_per_grain,
+            m.contact * 1e6,
+            m.layers[l].bridges_per_grain,
+            m.bridge * 1e6,
+        ));
+    }
 }
 
 /// Convergence history: one row per overlap-removal phase of every layer.
@@ -484,15 +831,17 @@ fn run_failed(stage: &str, layer: usize, layers: usize, tries: usize, f: RunFail
     ))
 }
 
-fn outputs_of(rows: &[Row], packing: Packing, axes: &[[f64; 3]]) -> Outputs {
+fn outputs_of(rows: &[Row], packing: Packing, axes: &[[f64; 3]], m: &Micro) -> Outputs {
     let mut out = Outputs::new();
     out.insert("packing".into(), Artifact::Packing(packing));
-    out.insert("report".into(), Artifact::Table(report(rows)));
+    out.insert("report".into(), Artifact::Table(report(rows, m)));
     out.insert("history".into(), Artifact::Table(history(rows)));
     out.insert(
         "orientation".into(),
         Artifact::Tensor(orientation_tensor(axes)),
     );
+    out.insert("contact_fabric".into(), Artifact::Tensor(fabric_tensor(m)));
+    out.insert("contacts".into(), Artifact::Table(contacts_table(m)));
     out
 }
 
@@ -710,9 +1059,11 @@ fn library_port(doc: &'static str) -> PortSpec {
 fn outputs() -> Vec<PortSpec> {
     vec![
         PortSpec::new("packing", ArtifactKind::Packing, "periodic packing with layer ids (library embedded for clumps)"),
-        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, tries, iterations, contraction steps, back-offs, shakes, grains of earlier layers released after a stuck step, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction"),
+        PortSpec::new("report", ArtifactKind::Table, "per layer: grains, tries, iterations, contraction steps, back-offs, shakes, grains of earlier layers released after a stuck step, time, final overlap energy (eq. 2.6 at min_gap) and largest violation, achieved fraction; microstructure: near-contacts per grain (gap <= min_gap + contact_tolerance) and bridges per grain (gap <= bridge_distance) with their histograms, the contact-normal fabric of the layer's own contacts (xx, yy, zz, 3 N_zz - 1, deviator norm) and of the contacts across the interface at its bottom, the grains' long-axis <n_z n_z>"),
         PortSpec::new("history", ArtifactKind::Table, "convergence history: per layer and overlap-removal phase, the contraction scale, iterations, overlap energy, largest violation and outcome (converged, stuck, shaken, shake_failed)"),
         PortSpec::new("orientation", ArtifactKind::Tensor, "3x3 orientation tensor <n n> of the grains' long axes (smallest principal moment of inertia); 1/3 I for spheres"),
+        PortSpec::new("contact_fabric", ArtifactKind::Tensor, "3x3 contact-normal fabric tensor <n n> over the near-contacts of the whole packing (gap <= min_gap + contact_tolerance; n: unit vector between the closest sphere pair of the two grains); NaN without any near-contact"),
+        PortSpec::new("contacts", ArtifactKind::Table, "distribution of near-contacts and bridges per grain over the whole packing: per count k = 0, 1, ... the grains with exactly k near-contacts and with exactly k grains within bridge_distance"),
     ]
 }
 
@@ -794,6 +1145,14 @@ fn announce<P>(
             "orientation",
             ArtifactMeta::of(ArtifactKind::Tensor).with_count(9, Some([9, 9])),
         )
+        .announce(
+            "contact_fabric",
+            ArtifactMeta::of(ArtifactKind::Tensor).with_count(9, Some([9, 9])),
+        )
+        .announce(
+            "contacts",
+            ArtifactMeta::of(ArtifactKind::Table).with_count(16, None),
+        )
         .with_plan(plan)
 }
 
@@ -810,7 +1169,7 @@ impl TypedStage for Classic {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "mcm.classic",
-            "2.1.0",
+            "2.2.0",
             "Mechanical contraction method: grains placed in a cell enlarged by beta, isotropic contraction steps each followed by overlap removal (FIRE or the paper's gradient descent over centroids and orientations), jams shaken loose, periodic in x, y, z",
         )
         .inputs(vec![library_port("clumps to pack (drawn by scrambled Sobol sampling on bounding diameter); spheres from `radius` if absent")])
@@ -970,8 +1329,11 @@ impl TypedStage for Classic {
             stats: st,
             time: t0.elapsed().as_secs_f64(),
             fraction,
+            released_layers: Vec::new(),
         }];
-        Ok(outputs_of(&rows, packing, &built.axes))
+        let m = microstructure(&packing, &built.axes, 1, cell[2], p.min_gap.si(), c);
+        warn_fallbacks(ctx, "mcm.classic", &rows, &m);
+        Ok(outputs_of(&rows, packing, &built.axes, &m))
     }
 }
 
@@ -981,7 +1343,7 @@ impl TypedStage for Stacked {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "mcm.stacked",
-            "2.2.0",
+            "2.3.0",
             "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen (those a jammed layer touches released), soft box on the centroids, each layer filled to eta exactly, jams thermalised and shaken loose",
         )
         .inputs(vec![library_port("clumps to pack (scrambled Sobol sampling on bounding diameter, Remark 2); spheres from `radius` if absent")])
@@ -1149,12 +1511,20 @@ impl TypedStage for Stacked {
             )
             .map_err(|(tries, f)| run_failed("mcm.stacked", layer, p.layers, tries, *f))?;
             let vol: f64 = picks.iter().map(|x| x.volume * s.powi(3)).sum();
+            let mut released_layers: Vec<usize> = st
+                .released_grains
+                .iter()
+                .map(|&g| tagged[g].2 as usize)
+                .collect();
+            released_layers.sort_unstable();
+            released_layers.dedup();
             rows.push(Row {
                 grains: picks.len(),
                 tries,
                 stats: st,
                 time: t0.elapsed().as_secs_f64(),
                 fraction: vol / (lx * ly * t),
+                released_layers,
             });
         }
         let cell = [lx, ly, t * p.layers as f64];
@@ -1162,6 +1532,8 @@ impl TypedStage for Stacked {
         let mut packing = Packing::new(Domain::boxed([0.0; 3], cell, [true, true, p.periodic_z]));
         packing.bodies = built.bodies;
         packing.library = built.library;
-        Ok(outputs_of(&rows, packing, &built.axes))
+        let m = microstructure(&packing, &built.axes, p.layers, t, p.min_gap.si(), c);
+        warn_fallbacks(ctx, "mcm.stacked", &rows, &m);
+        Ok(outputs_of(&rows, packing, &built.axes, &m))
     }
 }

@@ -74,6 +74,27 @@ fn mcm_pipeline_runs_and_exports() {
         "last phase {:?}",
         outcome.last()
     );
+    // Issue 31: the microstructure statistics of both packings, printed for the docs
+    // (docs/stages/mcm.md quotes them) and checked against the packing's own gap: the
+    // closest pair sits at min_gap + padding, so at least one near-contact exists.
+    for step in ["classic", "stacked"] {
+        let near = res.column(&format!("{step}.report"), "near_contacts_per_grain");
+        let bridges = res.column(&format!("{step}.report"), "bridges_per_grain");
+        let zz = res.column(&format!("{step}.report"), "fabric_zz");
+        let izz = res.column(&format!("{step}.report"), "interface_fabric_zz");
+        let released = res.column(&format!("{step}.report"), "released");
+        let shakes = res.column(&format!("{step}.report"), "shakes");
+        let f = match res.artifact(&format!("{step}.contact_fabric")) {
+            grainpipe_core::Artifact::Tensor(t) => t.values.clone(),
+            _ => panic!("contact_fabric"),
+        };
+        eprintln!(
+            "{step}: near-contacts per grain {near:?}, bridges per grain {bridges:?}, layer N_zz {zz:?}, interface N_zz {izz:?}, released {released:?}, shakes {shakes:?}, packing N = {f:?}"
+        );
+        assert!(near.iter().all(|&x| x > 0.0), "{step}: {near:?}");
+        assert!(bridges.iter().zip(&near).all(|(b, n)| b >= n));
+        assert!((f[0] + f[4] + f[8] - 1.0).abs() < 1e-12);
+    }
     for f in [
         "classic.vtp",
         "classic.h5",

@@ -269,6 +269,35 @@ impl HarmonicsParams {
     }
 }
 
+impl HarmonicsPlan {
+    /// Name, volume and bounding diameter of each grain, from its file's table at its target
+    /// size (rotations change neither).
+    fn item_sizes(&self) -> Vec<ItemSize> {
+        let unit: Vec<f64> = self
+            .tables
+            .par_iter()
+            .map(|t| {
+                StarShape {
+                    table: t.clone(),
+                    transform: Matrix3::identity(),
+                }
+                .bounding_radius()
+            })
+            .collect();
+        (0..self.targets.len())
+            .map(|k| {
+                let i = self.pick[k];
+                let scale = self.targets[k] / self.natural[i] * 1e-3;
+                ItemSize {
+                    name: self.names[i].clone(),
+                    volume: std::f64::consts::PI / 6.0 * self.targets[k].powi(3),
+                    bounding_diameter: 2.0 * unit[i] * scale,
+                }
+            })
+            .collect()
+    }
+}
+
 impl TypedStage for FromHarmonics {
     type Params = HarmonicsParams;
     /// The coefficient files read, checked and tabulated once in preflight.
@@ -303,6 +332,11 @@ impl TypedStage for FromHarmonics {
         let diameter = p.size.as_ref().map_or(p.d50.si(), |s| s.mean());
         let mut pf = preflight_grains(&self.info(), Some(n), 0.0, Some(diameter));
         pf.memory_bytes = plan.bytes;
+        // Every grain's size is known here: downstream preflights (a size cap in
+        // clumps.library) read it.
+        if let Some(g) = pf.outputs.get_mut("grains") {
+            g.item_sizes = Some(plan.item_sizes());
+        }
         Ok(pf.with_plan(plan))
     }
     fn run(
