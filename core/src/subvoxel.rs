@@ -48,6 +48,33 @@ pub struct InterfaceParams {
     pub coarsen: usize,
 }
 
+/// The sub-voxel output switch shared by the image makers (`binder.levelset`,
+/// `voxelize.packing`).
+#[params]
+pub struct SubvoxelOutput {
+    /// Also output the sub-voxel geometry as `subvoxel`: per voxel the volume fraction of
+    /// every phase (in the image's phase order) and the interface normal, for composite
+    /// voxels in the solvers (`interfaces: composite`). Costs (phases + 3) x 4 bytes per
+    /// voxel and the sampling of the voxels next to an interface.
+    #[param(default = false)]
+    pub subvoxel: bool,
+    /// Sub-samples per axis in each voxel next to an interface for the sub-voxel fractions
+    /// (the fraction error is below about 1 / samples of a voxel's volume).
+    #[param(default = 6, ty = "integer 2..16")]
+    pub subvoxel_samples: usize,
+}
+
+impl SubvoxelOutput {
+    /// Bytes per voxel of the output field of an image of `phases` phases (0 when off).
+    pub fn bytes_per_voxel(&self, phases: usize) -> u64 {
+        if self.subvoxel {
+            4 * (phases as u64 + 3)
+        } else {
+            0
+        }
+    }
+}
+
 impl InterfaceParams {
     /// Checks the settings against the solve: `has_subvoxel` whether the `subvoxel` input
     /// is connected, `grid` the input image's grid. Returns the grid that is solved on.

@@ -2,8 +2,10 @@
 
 use crate::common::{ports, report, targets, BinderImage, Passes};
 use crate::smooth_union::{
-    level_set, smooth_union, BinderError, BinderTarget, SmoothUnionSpec, Smoothing, MAX_K,
+    level_set, smooth_union, subvoxel_samples, BinderError, BinderTarget, SmoothUnionSpec,
+    Smoothing, MAX_K,
 };
+use grainpipe_core::subvoxel::{self, SubvoxelOutput};
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::ParamChoice;
 use grainpipe_core::{
@@ -55,6 +57,8 @@ pub struct LevelSetParams {
     /// Also output the smoothed level set (f32, metres, negative inside) as `level_set`.
     #[param(default = false)]
     pub level_set: bool,
+    #[param(flatten)]
+    pub subvoxel: SubvoxelOutput,
 }
 
 pub struct LevelSet;
@@ -89,6 +93,13 @@ impl TypedStage for LevelSet {
             ArtifactKind::Field,
             "the smoothed signed distance [m] at voxel centres (with level_set: true)",
         ));
+        info.outputs.push(PortSpec::new(
+            "subvoxel",
+            ArtifactKind::Field,
+            "with subvoxel: true, per voxel the fractions of pore, sand and binder and the \
+             interface normal (6 components), sampled from the sphere distances and the level \
+             set, for interfaces: composite in the solvers",
+        ));
         info
     }
 
@@ -108,15 +119,21 @@ impl TypedStage for LevelSet {
                 return Err(StageError::param("a", "must be a positive length"));
             }
         }
-        let mut pf = p
-            .image
-            .preflight(&self.info(), inputs, if p.level_set { 5 } else { 1 })?;
+        let bytes = if p.level_set { 5 } else { 1 } + p.subvoxel.bytes_per_voxel(3);
+        let mut pf = p.image.preflight(&self.info(), inputs, bytes)?;
         if p.level_set {
             if let Some(g) = pf.plan.clone() {
                 pf = pf.announce("level_set", ArtifactMeta::on_grid(ArtifactKind::Field, g));
             }
         } else {
             pf.outputs.retain(|k, _| k != "level_set");
+        }
+        if p.subvoxel.subvoxel {
+            if let Some(g) = pf.plan.clone() {
+                pf = pf.announce("subvoxel", ArtifactMeta::on_grid(ArtifactKind::Field, g));
+            }
+        } else {
+            pf.outputs.retain(|k, _| k != "subvoxel");
         }
         Ok(pf)
     }
@@ -152,7 +169,11 @@ impl TypedStage for LevelSet {
             },
             max_scale: 0.5 * mean_diameter,
         };
-        let passes = Passes::new(ctx, 4 + u64::from(p.level_set), &grid);
+        let passes = Passes::new(
+            ctx,
+            4 + u64::from(p.level_set) + u64::from(p.subvoxel.subvoxel),
+            &grid,
+        );
         let result =
             smooth_union::<StageError, _>(&grid, &spheres, &spec, &|d, n| passes.step(d, n))?;
         let a = result.scale;
@@ -185,8 +206,40 @@ impl TypedStage for LevelSet {
         } else {
             None
         };
+        let which = p
+            .subvoxel
+            .subvoxel
+            .then(|| subvoxel::interface_candidates(&grid, &result.labels));
+        let samples = match &which {
+            Some(which) => Some(subvoxel_samples::<StageError, _>(
+                &grid,
+                &spheres,
+                Smoothing {
+                    k: p.k,
+                    per_body: p.smooth_over == SmoothOver::Grains,
+                },
+                result.delta,
+                a,
+                which,
+                p.subvoxel.subvoxel_samples,
+                &|d, n| passes.step(d, n),
+            )?),
+            None => None,
+        };
         passes.finish()?;
         let image = p.image.image(grid, result.labels);
+        let subvoxel_field = match samples {
+            Some(s) => {
+                let sv = subvoxel::from_samples(&image, s).map_err(StageError::failed)?;
+                ctx.info(&format!(
+                    "sub-voxel geometry: {} mixed voxels ({:.1} %)",
+                    sv.mixed_count(),
+                    100.0 * sv.mixed_count() as f64 / image.labels.len().max(1) as f64
+                ));
+                Some(sv.to_field(&image.grid))
+            }
+            None => None,
+        };
         let table = report("binder.levelset", &image, &t, &p.image, |tab| {
             tab.with_f64("a", "m", vec![a])
                 .with_f64("radius_correction", "m", vec![result.delta])
@@ -207,6 +260,9 @@ impl TypedStage for LevelSet {
         out.insert("report".into(), Artifact::Table(table));
         if let Some(f) = field {
             out.insert("level_set".into(), Artifact::Field(f));
+        }
+        if let Some(f) = subvoxel_field {
+            out.insert("subvoxel".into(), Artifact::Field(f));
         }
         Ok(out)
     }

@@ -623,6 +623,76 @@ where
     Ok(field)
 }
 
+/// Sub-voxel samples (see `grainpipe_core::subvoxel`) of the three-phase image at the
+/// voxels flagged in `which`: each sub-sample is sand inside a corrected sphere
+/// (`d - delta <= 0`), binder in the smoothed union (`LSE_a(d - delta) <= 0`, eq. 2.15),
+/// else pore — the rules the labels follow at voxel centres. Phase indices 0 pore, 1 sand,
+/// 2 binder.
+#[allow(clippy::too_many_arguments)]
+pub fn subvoxel_samples<E, P>(
+    grid: &Grid,
+    spheres: &[WorldSphere],
+    sm: Smoothing,
+    delta: f64,
+    a: f64,
+    which: &[bool],
+    samples: usize,
+    progress: &P,
+) -> Result<Vec<grainpipe_core::subvoxel::VoxelSamples>, E>
+where
+    E: BinderFailure,
+    P: Fn(u64, u64) -> Result<(), E> + Sync,
+{
+    let sm = Smoothing {
+        k: sm.k.clamp(1, MAX_K),
+        ..sm
+    };
+    let window = if a > 0.0 { TRUNCATION * a } else { 0.0 };
+    // A point further than a ln k from every corrected sphere is outside the union
+    // (LSE_a >= d_min - a ln k); sub-samples lie within half a diagonal of the centre.
+    let half_diagonal = 0.5 * grid.spacing.iter().map(|s| s * s).sum::<f64>().sqrt();
+    let clamp = a * (sm.k as f64).ln() + 2.0 * half_diagonal;
+    let raster = SphereRaster::with_budget(grid, spheres, clamp + delta + window, MAX_BIN_ENTRIES)
+        .map_err(|e| E::from(BinderError::Raster(e)))?;
+    let phase_at = |cands: &[Candidate], q: [f64; 3]| {
+        let mut near = Nearest::default();
+        let n = near.find(cands, q, sm, (window, clamp + delta), |_, _| false);
+        if n == 0 {
+            return 0;
+        }
+        if near.d[0] - delta <= 0.0 {
+            return 1;
+        }
+        let lse = if a > 0.0 {
+            log_sum_exp(a, &near.d[..n])
+        } else {
+            near.d[0]
+        };
+        if lse - delta <= 0.0 {
+            2
+        } else {
+            0
+        }
+    };
+    let mut slots = vec![0u8; grid.voxel_count()];
+    let [nx, ny, _] = grid.dims;
+    let per_slab = raster.scan(
+        &mut slots,
+        Vec::new,
+        |acc: &mut Vec<grainpipe_core::subvoxel::VoxelSamples>, cands, [x, y, z], p, _| {
+            let v = x + nx * (y + ny * z);
+            if which[v] {
+                let s = grainpipe_core::subvoxel::sample_voxel(p, grid.spacing, samples, 3, |q| {
+                    phase_at(cands, q)
+                });
+                acc.push((v, s));
+            }
+        },
+        progress,
+    )?;
+    Ok(per_slab.into_iter().flatten().collect())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
