@@ -6,7 +6,7 @@
 //! Vectors are f32 (memory); all scalars and reductions are f64, reduced in fixed chunks so
 //! that the iterates do not depend on the number of threads.
 
-use crate::mac::{dot, Stokes, CHUNK};
+use crate::mac::{dot, DiagValue, Stokes, CHUNK};
 use rayon::prelude::*;
 
 /// Outcome of a solve.
@@ -47,8 +47,8 @@ impl std::fmt::Display for MinresError {
 /// Solves K x = b from x = 0, taking `b` over as the first Lanczos vector (so the right-hand
 /// side costs no extra vector). `precond(v, z)` applies the SPD preconditioner z = P^{-1} v;
 /// `monitor(iteration, relative residual)` may stop the solve by returning an error.
-pub fn minres<P, M, E>(
-    op: &Stokes,
+pub fn minres<D: DiagValue, P, M, E>(
+    op: &Stokes<D>,
     b: Vec<f32>,
     x: &mut [f32],
     tol: f64,

@@ -9,7 +9,7 @@
 //! red-black Gauss-Seidel, forward before and backward after the coarse correction, so that
 //! the V-cycle is symmetric (MINRES needs a symmetric preconditioner).
 
-use crate::mac::{active_bit, Dims, FLUID};
+use crate::mac::{active_bit, DiagValue, Dims, FLUID};
 use rayon::prelude::*;
 
 /// A 7-point symmetric operator on a periodic grid.
@@ -51,7 +51,7 @@ pub trait Op7: Sync {
 
 /// `1 / d` for the whole-number fine diagonals `d = 0..=12` of [`crate::mac::diagonals`]: a
 /// multiplication in place of the division that otherwise limits the fine sweeps.
-const INV_DIAG: [f32; 13] = [
+pub(crate) const INV_DIAG: [f32; 13] = [
     0.0,
     1.0,
     1.0 / 2.0,
@@ -68,15 +68,16 @@ const INV_DIAG: [f32; 13] = [
 ];
 
 /// The finest level: the wall rule of [`crate::mac`] evaluated from the mask, nothing stored.
-pub struct FineOp<'a> {
+pub struct FineOp<'a, D: DiagValue = u8> {
     pub dims: Dims,
     pub mask: &'a [u8],
-    /// This component's block of [`crate::mac::diagonals`].
-    pub diag: &'a [u8],
+    /// This component's block of [`crate::mac::diagonals`] (or of
+    /// [`crate::mac::composite_diagonals`]).
+    pub diag: &'a [D],
     pub axis: usize,
 }
 
-impl Op7 for FineOp<'_> {
+impl<D: DiagValue> Op7 for FineOp<'_, D> {
     fn dims(&self) -> Dims {
         self.dims
     }
@@ -86,7 +87,7 @@ impl Op7 for FineOp<'_> {
     }
     #[inline]
     fn diag(&self, i: usize, _nb: &[usize; 6]) -> f32 {
-        self.diag[i] as f32
+        self.diag[i].value()
     }
     #[inline]
     fn link(&self, i: usize, j: usize, _b: usize) -> f32 {
@@ -110,16 +111,16 @@ impl Op7 for FineOp<'_> {
             }
             s += read(nb[2 * b + 1]) + read(nb[2 * b]);
         }
-        (s, self.diag[i] as f32)
+        (s, self.diag[i].value())
     }
     #[inline]
     fn relax<R: Fn(usize) -> f32>(&self, read: R, r: f32, i: usize, nb: &[usize; 6]) -> f32 {
         let (s, _) = self.row_parts(read, i, nb);
-        (r + s) * INV_DIAG[self.diag[i] as usize]
+        self.diag[i].divide(r + s)
     }
     #[inline]
     fn solve_diag(&self, r: f32, i: usize, _nb: &[usize; 6]) -> f32 {
-        r * INV_DIAG[self.diag[i] as usize]
+        self.diag[i].divide(r)
     }
 }
 
@@ -559,8 +560,8 @@ impl Default for CycleSettings {
 }
 
 /// The hierarchy of one velocity component.
-pub struct Hierarchy<'a> {
-    pub fine: FineOp<'a>,
+pub struct Hierarchy<'a, D: DiagValue = u8> {
+    pub fine: FineOp<'a, D>,
     pub levels: Vec<Coarse>,
     pub settings: CycleSettings,
 }
@@ -568,11 +569,11 @@ pub struct Hierarchy<'a> {
 /// Stop coarsening at this many unknowns.
 const COARSEST: usize = 64;
 
-impl<'a> Hierarchy<'a> {
+impl<'a, D: DiagValue> Hierarchy<'a, D> {
     pub fn new(
         dims: Dims,
         mask: &'a [u8],
-        diag: &'a [u8],
+        diag: &'a [D],
         axis: usize,
         settings: CycleSettings,
     ) -> Self {

@@ -129,3 +129,59 @@ fn a_subset_of_directions_leaves_the_other_columns_unknown() {
     assert!(k.values[0].is_nan() && k.values[8].is_nan());
     assert_eq!(res.column("flow.report", "kappa").len(), 1);
 }
+
+#[test]
+fn composite_walls_need_fractions_and_say_how_to_give_them() {
+    let err = run_yaml(&registry(), &small_yaml("{ interfaces: composite }"))
+        .err()
+        .expect("must refuse")
+        .to_string();
+    assert!(err.contains("subvoxel") && err.contains("coarsen"), "{err}");
+    let err = run_yaml(&registry(), &small_yaml("{ coarsen: 2 }"))
+        .err()
+        .expect("must refuse")
+        .to_string();
+    assert!(err.contains("interfaces: composite"), "{err}");
+    let err = run_yaml(
+        &registry(),
+        &small_yaml("{ interfaces: composite, coarsen: 3 }"),
+    )
+    .err()
+    .expect("must refuse")
+    .to_string();
+    assert!(err.contains("coarsen"), "{err}");
+}
+
+/// `coarsen: 2`: a 2.5 um image (40^3, 16 voxels per sphere diameter) solved on a 5 um grid
+/// (20^3, 8 voxels per diameter) with sub-voxel walls, against the 2.5 um labels and the 5 um
+/// labels; iteration counts in the report and the history as for labels.
+#[test]
+fn coarsened_composite_walls_run_through_the_stage() {
+    let run = |size: &str, with: &str| {
+        let y = small_yaml(with).replace("voxel_size: 10 um", &format!("voxel_size: {size}"));
+        run_yaml(&registry(), &y).unwrap()
+    };
+    let fine = run("2.5 um", "{ directions: [x] }");
+    let coarse = run("5 um", "{ directions: [x] }");
+    let comp = run(
+        "2.5 um",
+        "{ directions: [x], interfaces: composite, coarsen: 2 }",
+    );
+    let kf = fine.column("flow.report", "kappa")[0];
+    let kl = coarse.column("flow.report", "kappa")[0];
+    let kc = comp.column("flow.report", "kappa")[0];
+    let it = comp.column("flow.report", "iterations")[0];
+    let hist = comp.column("flow.history", "residual");
+    println!(
+        "kappa 2.5 um labels {kf:.4e}; 5 um labels {kl:.4e} ({:+.1} %), 5 um composite from \
+         2.5 um {kc:.4e} ({:+.1} %), {it} iterations",
+        100.0 * (kl / kf - 1.0),
+        100.0 * (kc / kf - 1.0)
+    );
+    assert!((kc / kf - 1.0).abs() < 0.1, "{kc} vs {kf}");
+    assert_eq!(hist.len() as f64, it);
+    // The coarse fractions keep the fine porosity.
+    let phi = comp.column("flow.report", "porosity")[0];
+    let phi_f = fine.column("flow.report", "porosity")[0];
+    assert!((phi - phi_f).abs() < 1e-6, "{phi} vs {phi_f}");
+}
