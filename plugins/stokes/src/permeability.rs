@@ -7,6 +7,7 @@ use crate::solver::{
     permeability, permeability_composite, symmetry_error, SolveError, SolverSettings,
     BYTES_PER_VOXEL, FIELD_BYTES_PER_VOXEL, LABEL_BYTES_PER_VOXEL,
 };
+use grainpipe_core::subvoxel::{InterfaceParams, Interfaces};
 use grainpipe_core::units::{Pressure, Viscosity, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, ComponentConvention, Field, FieldData,
@@ -40,16 +41,6 @@ impl Axis {
     }
 }
 
-/// How the walls between pore and solid are placed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ParamChoice)]
-#[serde(rename_all = "snake_case")]
-pub enum Interfaces {
-    /// On the voxel faces between `fluid` labels and the others (staircase).
-    Labels,
-    /// Inside the voxels, from their fluid volume fractions (sub-voxel walls).
-    Composite,
-}
-
 #[params]
 pub struct PermeabilityParams {
     /// Load cases: the body force f = e_i for each listed axis (eq. 3.8); three give the full tensor.
@@ -80,19 +71,13 @@ pub struct PermeabilityParams {
     /// 1.8 measured 10-14 % fewer iterations than 1.5 on random packings at 64^3 and 96^3.
     #[param(default = 1.8)]
     pub over_correction: f64,
-    /// Walls: `labels` puts them on the voxel faces (staircase, first order in the voxel size);
-    /// `composite` places them inside the boundary voxels from their fluid volume fraction (sum
-    /// of the fractions of the `fluid` phases): voxels at least half fluid carry the unknowns
-    /// and each velocity next to the solid sees the wall at the distance the fractions give
-    /// (symmetric wall rule of Gibou et al. 2002; see docs/stages/stokes.md). Needs the `subvoxel`
-    /// input or `coarsen: 2 | 4`.
-    #[param(default = Interfaces::Labels)]
-    pub interfaces: Interfaces,
-    /// With `interfaces: composite`: 2 or 4 coarsens the image by this factor per axis
-    /// (fractions of each coarse voxel from the fine labels) and solves on the coarse grid,
-    /// about factor^3 less memory and time than the fine labels. 1: fractions from the `subvoxel` input.
-    #[param(default = 1, ty = "one of: 1, 2, 4")]
-    pub coarsen: u32,
+    /// Walls with `interfaces: composite` (see the shared `interfaces` / `coarsen` below):
+    /// inside the boundary voxels from their fluid volume fraction (sum of the fractions of
+    /// the `fluid` phases): voxels at least half fluid carry the unknowns and each velocity
+    /// next to the solid sees the wall at the distance the fractions give (symmetric wall
+    /// rule of Gibou et al. 2002; see docs/stages/stokes.md).
+    #[param(flatten)]
+    pub interface: InterfaceParams,
 }
 
 pub struct PermeabilityStage;
@@ -169,15 +154,6 @@ fn check_params(p: &PermeabilityParams) -> Result<(), StageError> {
     if !(p.over_correction >= 1.0 && p.over_correction <= 2.0) {
         return Err(StageError::param("over_correction", "must be in [1, 2]"));
     }
-    if ![1, 2, 4].contains(&p.coarsen) {
-        return Err(StageError::param("coarsen", "must be 1, 2 or 4"));
-    }
-    if p.coarsen > 1 && p.interfaces == Interfaces::Labels {
-        return Err(StageError::param(
-            "coarsen",
-            "coarsening builds sub-voxel walls: set `interfaces: composite` with it",
-        ));
-    }
     Ok(())
 }
 
@@ -187,39 +163,9 @@ fn composite_grid(
     inputs: &InputMetas,
     grid: Grid,
 ) -> Result<Grid, StageError> {
-    let has_sv = inputs.contains_key("subvoxel");
-    if p.interfaces == Interfaces::Labels {
-        return Ok(grid);
-    }
-    if p.coarsen == 1 {
-        if !has_sv {
-            return Err(StageError::param(
-                "interfaces",
-                "`composite` needs the voxels' phase fractions: connect the `subvoxel` input \
-                 (a sub-voxel field from the image maker, `subvoxel: true`) or set \
-                 `coarsen: 2` or `4` to build them from this image coarsened",
-            ));
-        }
-        return Ok(grid);
-    }
-    if has_sv {
-        return Err(StageError::param(
-            "coarsen",
-            "give either the `subvoxel` input or `coarsen: 2 | 4`, not both",
-        ));
-    }
-    let f = p.coarsen as usize;
-    if grid.dims.iter().any(|&d| d % f != 0) {
-        return Err(StageError::param(
-            "coarsen",
-            format!("the image's dims {:?} are not multiples of {f}", grid.dims),
-        ));
-    }
-    Ok(Grid {
-        dims: grid.dims.map(|d| d / f),
-        spacing: grid.spacing.map(|s| s * f as f64),
-        ..grid
-    })
+    p.interface
+        .check(inputs.contains_key("subvoxel"), &grid)
+        .map_err(|(k, m)| StageError::param(&k, m))
 }
 
 fn check_grid(grid: &Grid) -> Result<(), StageError> {
@@ -329,11 +275,11 @@ impl TypedStage for PermeabilityStage {
         check_grid(&fine)?;
         let grid = composite_grid(p, inputs, fine.clone())?;
         let n = grid.voxel_count() as f64;
-        let composite = p.interfaces == Interfaces::Composite;
+        let composite = p.interface.interfaces == Interfaces::Composite;
         let bpv = bytes_per_voxel(p.fields, composite);
         // Coarsening holds the fine image while the coarse one and its fractions are built.
         let bytes = bpv * n
-            + if p.coarsen > 1 {
+            + if p.interface.coarsen > 1 {
                 fine.voxel_count() as f64
             } else {
                 0.0
@@ -407,19 +353,16 @@ impl TypedStage for PermeabilityStage {
         let image_in = input(inputs, "image", Artifact::as_phase_image)?;
         check_grid(&image_in.grid)?;
         // Sub-voxel walls: the fluid fraction per voxel, on the grid solved on.
-        let mut coarse = None;
-        let fraction: Option<Vec<f32>> = if p.interfaces == Interfaces::Composite {
-            let (img, sv) = if p.coarsen > 1 {
-                let (c, sv) = grainpipe_core::subvoxel::coarsen(image_in, p.coarsen as usize)
-                    .map_err(|e| StageError::param("coarsen", e))?;
-                coarse = Some(c);
-                (coarse.as_ref().expect("just set"), sv)
-            } else {
-                let field = input(inputs, "subvoxel", Artifact::as_field)?;
-                let sv = grainpipe_core::subvoxel::Subvoxel::from_field(field, image_in)
-                    .map_err(|e| StageError::input("subvoxel", e))?;
-                (image_in, sv)
-            };
+        let field = match inputs.get("subvoxel") {
+            Some(_) => Some(input(inputs, "subvoxel", Artifact::as_field)?),
+            None => None,
+        };
+        let (image, subvoxel) = p
+            .interface
+            .prepare(image_in, field)
+            .map_err(|e| StageError::input("subvoxel", e))?;
+        let fraction: Option<Vec<f32>> = if let Some(sv) = subvoxel {
+            let img = image.as_ref();
             let fluid_phase: Vec<bool> = img
                 .phases
                 .iter()
@@ -442,8 +385,8 @@ impl TypedStage for PermeabilityStage {
             ctx.info(&format!(
                 "sub-voxel walls: {mixed} of {} voxels hold fluid and solid{}",
                 f.len(),
-                if p.coarsen > 1 {
-                    format!(" (image coarsened by {})", p.coarsen)
+                if p.interface.coarsen > 1 {
+                    format!(" (image coarsened by {})", p.interface.coarsen)
                 } else {
                     String::new()
                 }
@@ -455,7 +398,7 @@ impl TypedStage for PermeabilityStage {
             }
             None
         };
-        let image = coarse.as_ref().unwrap_or(image_in);
+        let image = image.as_ref();
         let grid = &image.grid;
         if !grid.periodic.iter().all(|&b| b) {
             ctx.warn(&format!(

@@ -137,11 +137,6 @@ fn composite_walls_need_fractions_and_say_how_to_give_them() {
         .expect("must refuse")
         .to_string();
     assert!(err.contains("subvoxel") && err.contains("coarsen"), "{err}");
-    let err = run_yaml(&registry(), &small_yaml("{ coarsen: 2 }"))
-        .err()
-        .expect("must refuse")
-        .to_string();
-    assert!(err.contains("interfaces: composite"), "{err}");
     let err = run_yaml(
         &registry(),
         &small_yaml("{ interfaces: composite, coarsen: 3 }"),
