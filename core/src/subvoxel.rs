@@ -38,7 +38,8 @@ pub struct InterfaceParams {
     /// `labels`: every voxel is the phase of its label. `composite`: voxels cut by an
     /// interface get the laminate property of their phases along the interface normal
     /// (sub-voxel accuracy; needs the `subvoxel` input from an image maker run with
-    /// `subvoxel: true`, or coarsen 2 or 4).
+    /// `subvoxel: true`, or coarsen 2 or 4; in elasticity.fft and conductivity.fft it needs
+    /// discretization: hex8 or rotated).
     #[param(default = Interfaces::Labels)]
     pub interfaces: Interfaces,
     /// Solve on the image coarsened by this factor per axis (1, 2 or 4): each coarse voxel

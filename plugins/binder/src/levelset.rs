@@ -72,7 +72,7 @@ impl TypedStage for LevelSet {
         let mut info = ports(
             StageInfo::new(
                 "binder.levelset",
-                "1.0.0",
+                "1.1.0",
                 "Adds binder bridges to a packing of spheres or clumps and images it in three \
              phases (Donval et al. 2025, section 2.3): the signed distances to the spheres \
              (periodic where the packing is) are combined by the scaled LogSumExp of the k \

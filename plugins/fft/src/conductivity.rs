@@ -107,7 +107,7 @@ impl TypedStage for ConductivityFft {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "conductivity.fft",
-            "1.0.0",
+            "1.1.0",
             "Apparent thermal conductivity of a periodic voxel image: for each macroscopic \
              unit temperature gradient G the periodic fluctuation t solving \
              div k(x)(G + grad t) = 0 is computed by FFT-preconditioned conjugate gradients \

@@ -170,7 +170,7 @@ impl TypedStage for ElasticityFft {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "elasticity.fft",
-            "1.0.0",
+            "1.1.0",
             "Apparent stiffness of a periodic voxel image (Donval et al. 2025, section 3.2, \
              eq. 3.2-3.5): for each macroscopic unit strain E the periodic displacement \
              fluctuation u solving div C(x):(E + grad^s u) = 0 is computed by FFT-preconditioned \

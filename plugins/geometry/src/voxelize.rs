@@ -1,5 +1,6 @@
 //! `voxelize.packing`: spheres and clumps -> a phase image, with sub-voxel supersampling.
 
+use grainpipe_core::subvoxel::{self, SubvoxelOutput};
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, Phase,
@@ -23,9 +24,51 @@ pub struct VoxelizeParams {
     /// Name of the solid phase (label 1).
     #[param(default = "grain".into())]
     pub phase_name: String,
+    #[param(flatten)]
+    pub subvoxel: SubvoxelOutput,
 }
 
 pub struct Voxelize;
+
+/// The sub-voxel geometry of a two-phase sphere image: voxels next to an interface sampled
+/// at `samples^3` points against the spheres that reach them (solid inside any sphere).
+fn subvoxel_geometry(
+    image: &PhaseImage,
+    spheres: &[WorldSphere],
+    samples: usize,
+    ctx: &RunContext,
+) -> Result<grainpipe_core::Field, StageError> {
+    use grainpipe_core::raster::{min_distance, SphereRaster};
+    let grid = &image.grid;
+    let half_diagonal = 0.5 * grid.spacing.iter().map(|s| s * s).sum::<f64>().sqrt();
+    let raster = SphereRaster::new(grid, spheres, 2.0 * half_diagonal)
+        .map_err(|e| StageError::failed(e.to_string()))?;
+    let which = subvoxel::interface_candidates(grid, &image.labels);
+    let [nx, ny, _] = grid.dims;
+    let mut slots = vec![0u8; grid.voxel_count()];
+    let per_slab = raster.scan(
+        &mut slots,
+        Vec::new,
+        |acc: &mut Vec<subvoxel::VoxelSamples>, cands, [x, y, z], c, _| {
+            let v = x + nx * (y + ny * z);
+            if which[v] {
+                let s = subvoxel::sample_voxel(c, grid.spacing, samples, 2, |q| {
+                    usize::from(min_distance(cands, q, 0.0, 0.0) < 0.0)
+                });
+                acc.push((v, s));
+            }
+        },
+        |done, total| ctx.progress(done, total),
+    )?;
+    let sv = subvoxel::from_samples(image, per_slab.into_iter().flatten().collect())
+        .map_err(StageError::failed)?;
+    ctx.info(&format!(
+        "sub-voxel geometry: {} mixed voxels ({:.1} %)",
+        sv.mixed_count(),
+        100.0 * sv.mixed_count() as f64 / image.labels.len().max(1) as f64
+    ));
+    Ok(sv.to_field(grid))
+}
 
 /// Upper bound on voxels, so a typo in voxel_size is refused instead of swapping.
 const MAX_VOXELS: f64 = 4e9;
@@ -46,7 +89,7 @@ impl TypedStage for Voxelize {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "voxelize.packing",
-            "1.0.0",
+            "1.1.0",
             "Voxelizes a packing of spheres or clumps into a two-phase image (0 = pore, 1 = \
              solid). A voxel entirely inside a sphere is solid, one entirely outside every \
              sphere is pore, and a voxel cut by a surface is sampled at supersampling^3 points \
@@ -66,6 +109,13 @@ impl TypedStage for Voxelize {
                 "report",
                 ArtifactKind::Table,
                 "analytic, image and coverage volume fractions",
+            ),
+            PortSpec::new(
+                "subvoxel",
+                ArtifactKind::Field,
+                "with subvoxel: true, per voxel the pore and solid fractions and the interface \
+                 normal (5 components), sampled against the spheres, for interfaces: composite \
+                 in the solvers",
             ),
         ])
     }
@@ -112,7 +162,7 @@ impl TypedStage for Voxelize {
                         format!("{n:.3e} voxels: more than {MAX_VOXELS:.0e}; use a larger voxel"),
                     ));
                 }
-                memory = n as u64;
+                memory = n as u64 * (1 + p.subvoxel.bytes_per_voxel(2));
                 // The grid is known when the voxel size is: given, or derived from a mean
                 // diameter the packing fixes exactly (a length scale is only an estimate of the
                 // diameter the run measures). The run then uses this voxel size.
@@ -129,13 +179,20 @@ impl TypedStage for Voxelize {
                 }
             }
         }
-        Ok(Preflight::from_info(&self.info(), memory)
-            .announce("image", out)
+        let mut pf = Preflight::from_info(&self.info(), memory)
+            .announce("image", out.clone())
             .announce(
                 "report",
                 ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
-            )
-            .with_plan(voxel))
+            );
+        if p.subvoxel.subvoxel {
+            let mut field = out;
+            field.kind = ArtifactKind::Field;
+            pf = pf.announce("subvoxel", field);
+        } else {
+            pf.outputs.retain(|k, _| k != "subvoxel");
+        }
+        Ok(pf.with_plan(voxel))
     }
 
     fn run(
@@ -191,9 +248,22 @@ impl TypedStage for Voxelize {
             .with_f64("relative_error", "1", vec![(img - analytic) / analytic])
             .with_f64("voxel_size", "m", vec![grid.spacing[0]])
             .with_i64("voxels", "1", vec![grid.voxel_count() as i64]);
+        let subvoxel_field = if p.subvoxel.subvoxel {
+            Some(subvoxel_geometry(
+                &image,
+                &spheres,
+                p.subvoxel.subvoxel_samples,
+                ctx,
+            )?)
+        } else {
+            None
+        };
         let mut out = Outputs::new();
         out.insert("image".into(), Artifact::PhaseImage(image));
         out.insert("report".into(), Artifact::Table(report));
+        if let Some(f) = subvoxel_field {
+            out.insert("subvoxel".into(), Artifact::Field(f));
+        }
         Ok(out)
     }
 }

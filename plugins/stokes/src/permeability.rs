@@ -198,7 +198,7 @@ impl TypedStage for PermeabilityStage {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "stokes.permeability",
-            "1.0.0",
+            "1.1.0",
             "Apparent permeability tensor of a periodic voxel pore space (Donval et al. 2025, \
              section 3.3, eq. 3.6-3.8): for a body force f along each load direction, the \
              periodic Stokes flow mu Lap u - grad p = -f, div u = 0 with u = 0 on the solid is \

@@ -320,9 +320,10 @@ mod tests {
             1e-12,
         );
         // Rotation taking e_z to n: r = rotation about axis (e_z x n).
-        for n in [[1.0, 2.0, 3.0], [0.3, -0.9, 0.1], [1.0, 0.0, 0.0]] {
-            let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2] as f64).sqrt();
-            let n: [f64; 3] = n.map(|c: f64| c / l);
+        let normals: [[f64; 3]; 3] = [[1.0, 2.0, 3.0], [0.3, -0.9, 0.1], [1.0, 0.0, 0.0]];
+        for n in normals {
+            let l = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+            let n: [f64; 3] = n.map(|c| c / l);
             // Orthonormal frame with third axis n: r's columns are (t1, t2, n).
             let helper = if n[0].abs() < 0.9 {
                 [1.0, 0.0, 0.0]
