@@ -31,6 +31,19 @@ pub enum Interfaces {
     Composite,
 }
 
+/// How a composite voxel that holds pore is treated by the FFT solvers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ParamChoice)]
+#[serde(rename_all = "snake_case")]
+pub enum PoreVoxels {
+    /// The laminate of the solid phases where they fill at least half of the voxel, pore
+    /// otherwise (robust: the solver converges as on labels).
+    Majority,
+    /// The exact rank-one laminate with a traction-free (non-conducting) pore lamina: exact
+    /// for plane layers, but on granular images the void laminae leave near-mechanisms and
+    /// CG may stall.
+    Laminate,
+}
+
 /// The interface settings shared by the image solvers (`elasticity.fft`,
 /// `conductivity.fft`, `stokes.permeability`).
 #[params]
@@ -47,6 +60,13 @@ pub struct InterfaceParams {
     /// image such as a CT scan) and the most frequent label. The dims must be multiples.
     #[param(default = 1, ty = "integer 1|2|4")]
     pub coarsen: usize,
+    /// elasticity.fft and conductivity.fft with interfaces: composite: `majority` gives a
+    /// voxel that holds pore the laminate of its solid phases when they fill at least half of
+    /// it, else makes it pore; `laminate` uses the exact laminate with a traction-free pore
+    /// lamina (exact for plane layers; on sand images CG stalled, see docs/stages/
+    /// elasticity.md). stokes.permeability uses the fluid fractions and ignores it.
+    #[param(default = PoreVoxels::Majority)]
+    pub pore_voxels: PoreVoxels,
 }
 
 /// The sub-voxel output switch shared by the image makers (`binder.levelset`,

@@ -15,11 +15,11 @@ use crate::common::{
     check_interfaces, composite_table, phases_present, resolve, solve_failure, unused_keys,
     validate_solver, Discretization, Precision, Solver,
 };
-use crate::kernel::composite::{laminate_conductivity, Composite};
+use crate::kernel::composite::{laminate_conductivity, majority_pore_conductivity, Composite};
 use crate::kernel::scalar::{bytes_per_voxel, Scalar};
 use crate::kernel::solver::{solve, SolveOptions};
 use crate::real::Real;
-use grainpipe_core::subvoxel::{InterfaceParams, Interfaces};
+use grainpipe_core::subvoxel::{InterfaceParams, Interfaces, PoreVoxels};
 use std::sync::Arc;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ParamChoice)]
@@ -266,8 +266,12 @@ pub fn solve_image(
         0.0,
         |q| Ok(q.si()),
     )?;
+    let law = match p.interface.pore_voxels {
+        PoreVoxels::Majority => majority_pore_conductivity,
+        PoreVoxels::Laminate => laminate_conductivity,
+    };
     let composite = subvoxel.map(|sv| {
-        let (table, summary) = composite_table(image, &sv, &k, laminate_conductivity);
+        let (table, summary) = composite_table(image, &sv, &k, law);
         summary.report(ctx, image.labels.len());
         Arc::new(table)
     });

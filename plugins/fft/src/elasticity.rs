@@ -16,13 +16,13 @@ use crate::common::{
     check_interfaces, composite_table, phases_present, resolve, solve_failure, unused_keys,
     validate_solver, Discretization, Material, Precision, Solver,
 };
-use crate::kernel::composite::{laminate_stiffness, Composite, M6};
+use crate::kernel::composite::{laminate_stiffness, majority_pore_stiffness, Composite, M6};
 use crate::kernel::constants::{self, Class, ENGINEERING_NAMES};
 use crate::kernel::elastic::{bytes_per_voxel, Elastic};
 use crate::kernel::solver::{solve, SolveError, SolveOptions};
 use crate::kernel::Iso;
 use crate::real::Real;
-use grainpipe_core::subvoxel::{InterfaceParams, Interfaces};
+use grainpipe_core::subvoxel::{InterfaceParams, Interfaces, PoreVoxels};
 use std::sync::Arc;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, ParamChoice)]
@@ -319,8 +319,12 @@ pub fn solve_image<'a>(
         Iso::ZERO,
         |m| m.iso(),
     )?;
+    let law = match p.interface.pore_voxels {
+        PoreVoxels::Majority => majority_pore_stiffness,
+        PoreVoxels::Laminate => laminate_stiffness,
+    };
     let composite = subvoxel.map(|sv| {
-        let (table, summary) = composite_table(solved, &sv, &mats, laminate_stiffness);
+        let (table, summary) = composite_table(solved, &sv, &mats, law);
         summary.report(ctx, solved.labels.len());
         Arc::new(table)
     });

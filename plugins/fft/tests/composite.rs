@@ -7,7 +7,7 @@
 mod common;
 use common::*;
 use grainpipe_core::stage::SilentReporter;
-use grainpipe_core::subvoxel::{self, InterfaceParams, Interfaces, Subvoxel};
+use grainpipe_core::subvoxel::{self, InterfaceParams, Interfaces, PoreVoxels, Subvoxel};
 use grainpipe_core::units::Q;
 use grainpipe_core::{PhaseImage, RunContext};
 use grainpipe_fft::common::{Discretization, Solver};
@@ -19,6 +19,7 @@ fn composite() -> InterfaceParams {
     InterfaceParams {
         interfaces: Interfaces::Composite,
         coarsen: 1,
+        pore_voxels: PoreVoxels::Laminate,
     }
 }
 
@@ -293,6 +294,7 @@ fn coarsened_fine_labels_give_exact_laminate() {
         p.interface = InterfaceParams {
             interfaces: Interfaces::Composite,
             coarsen: 4,
+            ..composite()
         };
         let (solved, res) = solve_image(&p, &fine, None, &ctx).unwrap();
         assert_eq!(solved.grid.dims, [1, 1, 10]);

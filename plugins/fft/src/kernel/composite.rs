@@ -166,6 +166,35 @@ pub fn laminate_stiffness(phases: &[(f64, Iso)], n: [f64; 3]) -> M6 {
     out
 }
 
+/// The stiffness of a composite voxel under the `majority` rule for pores: the laminate of
+/// its solid phases ([`laminate_stiffness`] without the void) where they fill at least half
+/// of the voxel, a pore otherwise. Why not the exact void laminate: it is traction-free
+/// across the lamina however thin, so a voxel 1 % pore loses all normal stiffness, and on
+/// sand images the neighbouring void laminae of different normals leave near-mechanisms
+/// (CG stalled at 1.2e-5 after 3000 iterations on the 8 um sand core, where the labels
+/// converge in 87-131).
+pub fn majority_pore_stiffness(phases: &[(f64, Iso)], n: [f64; 3]) -> M6 {
+    let total: f64 = phases.iter().map(|p| p.0).sum();
+    let solids: Vec<(f64, Iso)> = phases.iter().copied().filter(|p| is_solid(p.1)).collect();
+    let solid: f64 = solids.iter().map(|p| p.0).sum();
+    if solids.is_empty() || solid < 0.5 * total {
+        return [[0.0; 6]; 6];
+    }
+    laminate_stiffness(&solids, n)
+}
+
+/// The conductivity of a composite voxel under the `majority` rule for pores (see
+/// [`majority_pore_stiffness`]).
+pub fn majority_pore_conductivity(phases: &[(f64, f64)], n: [f64; 3]) -> [[f64; 3]; 3] {
+    let total: f64 = phases.iter().map(|p| p.0).sum();
+    let solids: Vec<(f64, f64)> = phases.iter().copied().filter(|p| p.1 > 0.0).collect();
+    let solid: f64 = solids.iter().map(|p| p.0).sum();
+    if solids.is_empty() || solid < 0.5 * total {
+        return [[0.0; 3]; 3];
+    }
+    laminate_conductivity(&solids, n)
+}
+
 /// The 3x3 conductivity of a rank-one laminate of phases `(fraction, k)` with unit normal
 /// `n`: the arithmetic mean along the interface, the harmonic mean across it (zero with a
 /// zero-conductivity lamina), `k = k_V (I - n n) + k_R n n`. Row-major.
@@ -370,6 +399,29 @@ mod tests {
         want[1][0] = 0.4 * 0.3 * q11;
         want[5][5] = 0.4 * m.mu;
         close(&c, &want, 1e-13);
+    }
+
+    /// The majority rule: a voxel at least half solid is the laminate of its solid phases
+    /// (the pore share dropped), one less than half solid is pore.
+    #[test]
+    fn majority_rule_for_pores() {
+        let sand = Iso::from_e_nu(66.9e9, 0.25);
+        let binder = Iso::from_e_nu(43e9, 0.17);
+        let n = [0.0, 0.6, 0.8];
+        let c = majority_pore_stiffness(&[(0.3, sand), (0.3, binder), (0.4, Iso::ZERO)], n);
+        close(
+            &c,
+            &laminate_stiffness(&[(0.5, sand), (0.5, binder)], n),
+            1e-14,
+        );
+        let c = majority_pore_stiffness(&[(0.2, sand), (0.2, binder), (0.6, Iso::ZERO)], n);
+        assert_eq!(c, [[0.0; 6]; 6]);
+        let k = majority_pore_conductivity(&[(0.55, 2.0), (0.45, 0.0)], n);
+        assert!((k[0][0] - 2.0).abs() < 1e-15 && k[0][1] == 0.0);
+        assert_eq!(
+            majority_pore_conductivity(&[(0.45, 2.0), (0.55, 0.0)], n),
+            [[0.0; 3]; 3]
+        );
     }
 
     #[test]
