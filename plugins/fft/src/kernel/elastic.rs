@@ -642,22 +642,8 @@ impl<T: Real> Elastic<T> {
         (lam, mu): (T, T),
         gauss: &[([[T; 2]; 3], T)],
     ) -> [[T; 8]; 3] {
-        let ih = h.map(|h| T::of(1.0 / h));
         let two = T::of(2.0);
-        let d = Self::element_gradients(h, ue);
-        let mut f = [[[T::zero(); 4]; 3]; 3];
-        for (wt, w) in gauss {
-            let ws = edge_weights(wt);
-            // g[axis][comp] = d u_comp / d axis
-            let mut g = [[T::zero(); 3]; 3];
-            for a in 0..3 {
-                for c in 0..3 {
-                    g[a][c] = d[a][c][0] * ws[a][0]
-                        + d[a][c][1] * ws[a][1]
-                        + d[a][c][2] * ws[a][2]
-                        + d[a][c][3] * ws[a][3];
-                }
-            }
+        Self::element_forces_with(h, ue, gauss, |g| {
             let exx = g[0][0] + e[0];
             let eyy = g[1][1] + e[1];
             let ezz = g[2][2] + e[2];
@@ -665,21 +651,12 @@ impl<T: Real> Elastic<T> {
             let syz = mu * (g[1][2] + g[2][1] + e[3]);
             let sxz = mu * (g[0][2] + g[2][0] + e[4]);
             let sxy = mu * (g[0][1] + g[1][0] + e[5]);
-            let s = [
+            [
                 [tr + two * mu * exx, sxy, sxz],
                 [sxy, tr + two * mu * eyy, syz],
                 [sxz, syz, tr + two * mu * ezz],
-            ];
-            for a in 0..3 {
-                for c in 0..3 {
-                    let v = *w * s[a][c];
-                    for q in 0..4 {
-                        f[a][c][q] = f[a][c][q] + v * ws[a][q];
-                    }
-                }
-            }
-        }
-        Self::edges_to_nodes(&f, ih)
+            ]
+        })
     }
 
     /// Nodal forces `B^T C (E + B u_e)` of one element with a general (composite voxel)
@@ -691,21 +668,8 @@ impl<T: Real> Elastic<T> {
         c: &M6,
         gauss: &[([[T; 2]; 3], T)],
     ) -> [[T; 8]; 3] {
-        let ih = h.map(|h| T::of(1.0 / h));
         let c: [[T; 6]; 6] = c.map(|row| row.map(T::of));
-        let d = Self::element_gradients(h, ue);
-        let mut f = [[[T::zero(); 4]; 3]; 3];
-        for (wt, w) in gauss {
-            let ws = edge_weights(wt);
-            let mut g = [[T::zero(); 3]; 3];
-            for a in 0..3 {
-                for cc in 0..3 {
-                    g[a][cc] = d[a][cc][0] * ws[a][0]
-                        + d[a][cc][1] * ws[a][1]
-                        + d[a][cc][2] * ws[a][2]
-                        + d[a][cc][3] * ws[a][3];
-                }
-            }
+        Self::element_forces_with(h, ue, gauss, |g| {
             let eps = [
                 g[0][0] + e[0],
                 g[1][1] + e[1],
@@ -720,16 +684,44 @@ impl<T: Real> Elastic<T> {
                     sv[i] = sv[i] + cij * eps[j];
                 }
             }
-            let s = [
+            [
                 [sv[0], sv[5], sv[4]],
                 [sv[5], sv[1], sv[3]],
                 [sv[4], sv[3], sv[2]],
-            ];
+            ]
+        })
+    }
+
+    /// The quadrature of a nodal element: at each Gauss point the displacement gradient
+    /// `g[axis][comp]` (without the load) goes to `stress(g)` (symmetric 3x3, load included),
+    /// whose work against the edge differences gives the nodal forces.
+    fn element_forces_with(
+        h: [f64; 3],
+        ue: &[[T; 8]; 3],
+        gauss: &[([[T; 2]; 3], T)],
+        stress: impl Fn(&[[T; 3]; 3]) -> [[T; 3]; 3],
+    ) -> [[T; 8]; 3] {
+        let ih = h.map(|h| T::of(1.0 / h));
+        let d = Self::element_gradients(h, ue);
+        let mut f = [[[T::zero(); 4]; 3]; 3];
+        for (wt, w) in gauss {
+            let ws = edge_weights(wt);
+            // g[axis][comp] = d u_comp / d axis
+            let mut g = [[T::zero(); 3]; 3];
             for a in 0..3 {
-                for cc in 0..3 {
-                    let v = *w * s[a][cc];
+                for c in 0..3 {
+                    g[a][c] = d[a][c][0] * ws[a][0]
+                        + d[a][c][1] * ws[a][1]
+                        + d[a][c][2] * ws[a][2]
+                        + d[a][c][3] * ws[a][3];
+                }
+            }
+            let s = stress(&g);
+            for a in 0..3 {
+                for c in 0..3 {
+                    let v = *w * s[a][c];
                     for q in 0..4 {
-                        f[a][cc][q] = f[a][cc][q] + v * ws[a][q];
+                        f[a][c][q] = f[a][c][q] + v * ws[a][q];
                     }
                 }
             }
