@@ -393,6 +393,9 @@ pub fn sample_voxel(
     phase_at: impl Fn([f64; 3]) -> usize,
 ) -> (Vec<f32>, Vec<[f64; 3]>) {
     let s = samples.max(1);
+    if phases == 0 {
+        return (vec![], vec![]);
+    }
     let mut count = vec![0u32; phases];
     let mut moment = vec![[0.0f64; 3]; phases];
     for k in 0..s * s * s {

@@ -332,6 +332,26 @@ fn staggered_and_spectral_composite_are_refused() {
             .expect_err("refused");
         assert!(e.to_string().contains("hex8"), "{e}");
     }
+    // a sub-voxel field on another grid is refused before any work
+    let mut other = inputs.clone();
+    let mut g2 = image([4, 8, 8], 1.0, |_, _, _| 1).grid;
+    g2.periodic = [true; 3];
+    other.insert(
+        "subvoxel".into(),
+        ArtifactMeta::on_grid(ArtifactKind::Field, g2),
+    );
+    let mut p = params(
+        materials(&[(1, 1.0, 0.3)]),
+        Discretization::Hex8,
+        Solver::Cg,
+        1e-6,
+    );
+    p.interface = composite();
+    let e = grainpipe_fft::elasticity::ElasticityFft
+        .preflight(&p, &other)
+        .map(|_| ())
+        .expect_err("refused");
+    assert!(e.to_string().contains("[4, 8, 8]"), "{e}");
     // and composite without sub-voxel geometry names both ways to give it
     inputs.shift_remove("subvoxel");
     let mut p = params(

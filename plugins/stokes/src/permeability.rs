@@ -163,6 +163,18 @@ fn composite_grid(
     inputs: &InputMetas,
     grid: Grid,
 ) -> Result<Grid, StageError> {
+    if let Some(g) = inputs.get("subvoxel").and_then(|m| m.grid.as_ref()) {
+        if g.dims != grid.dims {
+            return Err(StageError::input(
+                "subvoxel",
+                format!(
+                    "the sub-voxel field is on a {:?} grid and the image on {:?}: connect the \
+                     `subvoxel` output of the step that made this image",
+                    g.dims, grid.dims
+                ),
+            ));
+        }
+    }
     p.interface
         .check(inputs.contains_key("subvoxel"), &grid)
         .map_err(|(k, m)| StageError::param(&k, m))
