@@ -86,6 +86,21 @@ pub struct SubvoxelOutput {
 }
 
 impl SubvoxelOutput {
+    /// Refuses a sampling outside 2..=16 per axis (16^3 = 4096 points a voxel is plenty; more
+    /// is a typo that would run for hours). `(key, message)` on error.
+    pub fn check(&self) -> Result<(), (String, String)> {
+        if !(2..=16).contains(&self.subvoxel_samples) {
+            return Err((
+                "subvoxel_samples".into(),
+                format!(
+                    "must be between 2 and 16 sub-samples per axis, got {}",
+                    self.subvoxel_samples
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// Bytes per voxel of the output field of an image of `phases` phases (0 when off).
     pub fn bytes_per_voxel(&self, phases: usize) -> u64 {
         if self.subvoxel {

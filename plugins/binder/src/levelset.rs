@@ -119,6 +119,9 @@ impl TypedStage for LevelSet {
                 return Err(StageError::param("a", "must be a positive length"));
             }
         }
+        p.subvoxel
+            .check()
+            .map_err(|(k, m)| StageError::param(&k, m))?;
         let bytes = if p.level_set { 5 } else { 1 } + p.subvoxel.bytes_per_voxel(3);
         let mut pf = p.image.preflight(&self.info(), inputs, bytes)?;
         if p.level_set {

@@ -251,3 +251,31 @@ export:
         assert!((a - b).abs() <= 1e-12 * c1[0].abs(), "{a} vs {b}");
     }
 }
+
+/// A sub-voxel sampling that would run for hours is refused before any work.
+#[test]
+fn absurd_subvoxel_sampling_is_refused() {
+    let yaml = r#"
+name: t
+seed: 1
+stages:
+  - id: pack
+    use: packing.rsa
+    with:
+      size: [100 um, 100 um, 100 um]
+      radius: { kind: fixed, value: 17 um }
+      volume_fraction: 0.3
+  - id: voxels
+    use: voxelize.packing
+    in: { packing: pack.packing }
+    with: { voxel_size: 10 um, subvoxel: true, subvoxel_samples: 1000 }
+"#;
+    let err = run_yaml(&registry(), yaml)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(
+        err.contains("subvoxel_samples") && err.contains("1000"),
+        "{err}"
+    );
+}

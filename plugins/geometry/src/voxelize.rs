@@ -145,6 +145,9 @@ impl TypedStage for Voxelize {
                 "must be between 1 and 16",
             ));
         }
+        p.subvoxel
+            .check()
+            .map_err(|(k, m)| StageError::param(&k, m))?;
         let meta = inputs.get("packing");
         let mut out = ArtifactMeta::of(ArtifactKind::PhaseImage);
         let mut memory = 0;
