@@ -471,51 +471,53 @@ pub fn coarsen(image: &PhaseImage, factor: usize) -> Result<(PhaseImage, Subvoxe
     };
     let [cx, cy, cz] = cg.dims;
     let nc = cx * cy * cz;
-    let per: Vec<(u8, Vec<f32>, Vec<[f64; 3]>)> = (0..nc)
-        .into_par_iter()
-        .map(|v| {
-            let (x, y, z) = (v % cx, (v / cx) % cy, v / (cx * cy));
+    // The fine voxel indices of coarse voxel v, and the offset of each from its centre.
+    let block = |v: usize| {
+        let (x, y, z) = (v % cx, (v / cx) % cy, v / (cx * cy));
+        (0..f * f * f).map(move |k| {
+            let (i, j, l) = (k % f, (k / f) % f, k / (f * f));
+            let off: [f64; 3] =
+                std::array::from_fn(|a| ([i, j, l][a] as f64 + 0.5) / f as f64 - 0.5);
+            (g.index(x * f + i, y * f + j, z * f + l), off)
+        })
+    };
+    // Flat outputs (1 + 4 P bytes per coarse voxel), written per voxel in parallel.
+    let mut labels = vec![0u8; nc];
+    let mut fractions = vec![0.0f32; nc * p];
+    labels
+        .par_iter_mut()
+        .zip(fractions.par_chunks_mut(p))
+        .enumerate()
+        .for_each(|(v, (label, frac))| {
             let mut count = vec![0u32; p];
-            let mut moment = vec![[0.0f64; 3]; p];
-            for k in 0..f {
-                for j in 0..f {
-                    for i in 0..f {
-                        let l = image.labels[g.index(x * f + i, y * f + j, z * f + k)];
-                        let ph = index[l as usize];
-                        count[ph] += 1;
-                        let off = [i, j, k];
-                        for a in 0..3 {
-                            moment[ph][a] +=
-                                ((off[a] as f64 + 0.5) / f as f64 - 0.5) * cg.spacing[a];
-                        }
-                    }
-                }
+            for (fine, _) in block(v) {
+                count[index[image.labels[fine] as usize]] += 1;
             }
             let best = (0..p)
                 .max_by_key(|&k| (count[k], std::cmp::Reverse(k)))
                 .unwrap_or(0);
+            *label = image.phases[best].id;
             let total = (f * f * f) as f32;
-            (
-                image.phases[best].id,
-                count.iter().map(|&c| c as f32 / total).collect(),
-                moment,
-            )
-        })
-        .collect();
-    let mut labels = Vec::with_capacity(nc);
-    let mut fractions = Vec::with_capacity(nc * p);
-    let mut moments = Vec::with_capacity(nc);
-    for (l, fr, m) in per {
-        labels.push(l);
-        fractions.extend(fr);
-        moments.push(m);
-    }
+            for (o, &c) in frac.iter_mut().zip(&count) {
+                *o = c as f32 / total;
+            }
+        });
     let mut sv = Subvoxel {
         phases: p,
         fractions,
         normals: vec![[0.0; 3]; nc],
     };
-    set_normals(&cg, &mut sv, |v| Some(moments[v].clone()));
+    // First moments only where the fraction gradient vanishes (rare), from the fine voxels.
+    set_normals(&cg, &mut sv, |v| {
+        let mut moment = vec![[0.0f64; 3]; p];
+        for (fine, off) in block(v) {
+            let ph = index[image.labels[fine] as usize];
+            for a in 0..3 {
+                moment[ph][a] += off[a] * cg.spacing[a];
+            }
+        }
+        Some(moment)
+    });
     Ok((
         PhaseImage {
             grid: cg,

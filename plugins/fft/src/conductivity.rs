@@ -90,9 +90,10 @@ fn memory(p: &ConductivityParams, voxels: u64) -> u64 {
         Precision::F32 => 4,
     };
     // Composite table: a 4-byte slot per voxel and a 3x3 tensor (72 bytes) per mixed
-    // voxel, counted for a mixed share of one half.
+    // voxel, counted for a mixed share of one half, plus the decoded sub-voxel geometry
+    // (4 (P + 3) bytes, up to five phases).
     let composite = if p.interface.interfaces == Interfaces::Composite {
-        4.0 + 0.5 * 72.0
+        4.0 + 0.5 * 72.0 + 32.0
     } else {
         0.0
     };

@@ -141,8 +141,9 @@ fn check_params(p: &ElasticityParams) -> Result<(), StageError> {
 
 /// Bytes per voxel of the composite-voxel table, shared by the load cases: a 4-byte slot
 /// per voxel and a 6x6 stiffness (288 bytes) per mixed voxel, counted for a mixed share of
-/// one half (a sand core at 8 um has about a third).
-pub const COMPOSITE_BYTES_PER_VOXEL: f64 = 4.0 + 0.5 * 288.0;
+/// one half (a sand core at 8 um has about a third), plus the decoded sub-voxel geometry
+/// (4 (P + 3) bytes, counted for up to five phases).
+pub const COMPOSITE_BYTES_PER_VOXEL: f64 = 4.0 + 0.5 * 288.0 + 32.0;
 
 /// Memory of a run [bytes].
 pub fn memory(p: &ElasticityParams, voxels: u64) -> u64 {

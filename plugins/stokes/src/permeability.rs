@@ -87,7 +87,9 @@ pub const DARCY: f64 = 9.869_233e-13;
 
 /// Extra bytes per voxel of the sub-voxel walls: f32 diagonals and force weights (24 in place
 /// of the 3 diagonal bytes) and the fluid fractions (4).
-pub const COMPOSITE_BYTES_PER_VOXEL: f64 = 24.0 - 3.0 + 4.0;
+/// The decoded sub-voxel geometry (4 (P + 3) bytes, up to five phases) is held while the
+/// fractions are summed: 32 more.
+pub const COMPOSITE_BYTES_PER_VOXEL: f64 = 24.0 - 3.0 + 4.0 + 32.0;
 
 /// Bytes per voxel the stage holds at its peak.
 pub fn bytes_per_voxel(fields: bool, composite: bool) -> f64 {
