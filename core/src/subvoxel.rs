@@ -14,7 +14,10 @@
 //! Where that gradient vanishes (a lamina thinner than a voxel, centred in it) the first
 //! moment of the voxel's own samples is used.
 
-use crate::model::{ComponentConvention, Field, FieldData, Grid, PhaseImage};
+use crate::model::{
+    Artifact, ArtifactMeta, ComponentConvention, Field, FieldData, Grid, PhaseImage,
+};
+use crate::stage::{input, Inputs, StageError};
 use crate::{params, ParamChoice};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -112,32 +115,47 @@ impl SubvoxelOutput {
 }
 
 impl InterfaceParams {
-    /// Checks the settings against the solve: `has_subvoxel` whether the `subvoxel` input
-    /// is connected, `grid` the input image's grid. Returns the grid that is solved on.
-    pub fn check(&self, has_subvoxel: bool, grid: &Grid) -> Result<Grid, (String, String)> {
+    /// Checks the settings against the solve: `subvoxel` the metadata of the `subvoxel`
+    /// input when it is connected, `grid` the input image's grid. Returns the grid that is
+    /// solved on.
+    pub fn check(&self, subvoxel: Option<&ArtifactMeta>, grid: &Grid) -> Result<Grid, StageError> {
         if ![1, 2, 4].contains(&self.coarsen) {
-            return Err((
-                "coarsen".into(),
+            return Err(StageError::param(
+                "coarsen",
                 format!("must be 1, 2 or 4, got {}", self.coarsen),
             ));
         }
-        if self.coarsen > 1 && has_subvoxel {
-            return Err((
-                "coarsen".into(),
-                "a `subvoxel` input already gives the fractions; coarsen the image or give                  the subvoxel input, not both"
-                    .into(),
+        if self.coarsen > 1 && subvoxel.is_some() {
+            return Err(StageError::param(
+                "coarsen",
+                "a `subvoxel` input already gives the fractions; coarsen the image or give \
+                 the subvoxel input, not both",
             ));
         }
-        if self.interfaces == Interfaces::Composite && !has_subvoxel && self.coarsen == 1 {
-            return Err((
-                "interfaces".into(),
-                "composite voxels need sub-voxel geometry: connect the image maker's                  `subvoxel` output (run binder.levelset or voxelize.packing with subvoxel:                  true) to this step's `subvoxel` input, or set coarsen: 2 or 4 on a finer                  image"
-                    .into(),
+        if self.interfaces == Interfaces::Composite && subvoxel.is_none() && self.coarsen == 1 {
+            return Err(StageError::param(
+                "interfaces",
+                "composite voxels need sub-voxel geometry: connect the image maker's \
+                 `subvoxel` output (run binder.levelset or voxelize.packing with subvoxel: \
+                 true) to this step's `subvoxel` input, or set coarsen: 2 or 4 on a finer \
+                 image",
             ));
+        }
+        if let Some(g) = subvoxel.and_then(|m| m.grid.as_ref()) {
+            if g.dims != grid.dims {
+                return Err(StageError::input(
+                    "subvoxel",
+                    format!(
+                        "the sub-voxel field is on a {:?} grid and the image on {:?}: connect \
+                         the `subvoxel` output of the step that made this image",
+                        g.dims, grid.dims
+                    ),
+                ));
+            }
         }
         if grid.dims.iter().any(|&d| d % self.coarsen != 0) {
-            return Err((
-                "coarsen".into(),
+            return Err(StageError::param(
+                "coarsen",
                 format!(
                     "the image's dims {:?} are not multiples of {}",
                     grid.dims, self.coarsen
@@ -151,6 +169,14 @@ impl InterfaceParams {
             origin: grid.origin,
             periodic: grid.periodic,
         })
+    }
+
+    /// The `subvoxel` input of a solver, `None` when it is not connected.
+    pub fn subvoxel_input(inputs: &Inputs) -> Result<Option<&Field>, StageError> {
+        match inputs.get("subvoxel") {
+            Some(_) => input(inputs, "subvoxel", Artifact::as_field).map(Some),
+            None => Ok(None),
+        }
     }
 
     /// The image to solve and its sub-voxel geometry (`None` for labels): the input image
@@ -405,7 +431,7 @@ pub fn sample_voxel(
     h: [f64; 3],
     samples: usize,
     phases: usize,
-    phase_at: impl Fn([f64; 3]) -> usize,
+    mut phase_at: impl FnMut([f64; 3]) -> usize,
 ) -> (Vec<f32>, Vec<[f64; 3]>) {
     let s = samples.max(1);
     if phases == 0 {

@@ -180,6 +180,10 @@ impl TypedStage for LevelSet {
         let result =
             smooth_union::<StageError, _>(&grid, &spheres, &spec, &|d, n| passes.step(d, n))?;
         let a = result.scale;
+        let smoothing = Smoothing {
+            k: p.k,
+            per_body: p.smooth_over == SmoothOver::Grains,
+        };
         let field = if p.level_set {
             // The level set matters near its zero; further out it is clamped, which keeps
             // the bins' reach (and the cost) small.
@@ -187,10 +191,7 @@ impl TypedStage for LevelSet {
             let values = level_set::<StageError, _>(
                 &grid,
                 &spheres,
-                Smoothing {
-                    k: p.k,
-                    per_body: p.smooth_over == SmoothOver::Grains,
-                },
+                smoothing,
                 result.delta,
                 a,
                 clamp,
@@ -217,10 +218,7 @@ impl TypedStage for LevelSet {
             Some(which) => Some(subvoxel_samples::<StageError, _>(
                 &grid,
                 &spheres,
-                Smoothing {
-                    k: p.k,
-                    per_body: p.smooth_over == SmoothOver::Grains,
-                },
+                smoothing,
                 result.delta,
                 a,
                 which,

@@ -581,6 +581,58 @@ where
     }
 }
 
+/// The two distances of eq. (2.15) at a point, shared by the level set and the sub-voxel
+/// sampling: the k nearest corrected sphere distances within `window` of the nearest,
+/// searched out to `beyond` (= clamp + delta) from the point.
+struct SmoothedDistance {
+    sm: Smoothing,
+    delta: f64,
+    a: f64,
+    window: f64,
+    beyond: f64,
+}
+
+impl SmoothedDistance {
+    fn new(sm: Smoothing, delta: f64, a: f64, clamp: f64) -> Self {
+        SmoothedDistance {
+            sm: Smoothing {
+                k: sm.k.clamp(1, MAX_K),
+                ..sm
+            },
+            delta,
+            a,
+            window: if a > 0.0 { TRUNCATION * a } else { 0.0 },
+            beyond: clamp + delta,
+        }
+    }
+
+    /// The block raster that holds every sphere this search can reach.
+    fn raster<E: BinderFailure>(
+        &self,
+        grid: &Grid,
+        spheres: &[WorldSphere],
+    ) -> Result<SphereRaster, E> {
+        SphereRaster::with_budget(grid, spheres, self.beyond + self.window, MAX_BIN_ENTRIES)
+            .map_err(|e| E::from(BinderError::Raster(e)))
+    }
+
+    /// `(d_min - delta, LSE_a(d - delta))` at `p` (the second is `d_min - delta` for
+    /// `a = 0`), `None` when no sphere is within `beyond`.
+    fn at(&self, cands: &[Candidate], p: [f64; 3], near: &mut Nearest) -> Option<(f64, f64)> {
+        let n = near.find(cands, p, self.sm, (self.window, self.beyond), |_, _| false);
+        if n == 0 {
+            return None;
+        }
+        let nearest = near.d[0] - self.delta;
+        let smoothed = if self.a > 0.0 {
+            log_sum_exp(self.a, &near.d[..n]) - self.delta
+        } else {
+            nearest
+        };
+        Some((nearest, smoothed))
+    }
+}
+
 /// The smoothed level set `LSE_a(d - delta)` (eq. 2.15) at every voxel centre, clamped to
 /// `[-clamp, clamp]` (voxels with no sphere within `clamp` get `clamp`).
 pub fn level_set<E, P>(
@@ -596,26 +648,14 @@ where
     E: BinderFailure,
     P: Fn(u64, u64) -> Result<(), E> + Sync,
 {
-    let sm = Smoothing {
-        k: sm.k.clamp(1, MAX_K),
-        ..sm
-    };
-    let window = if a > 0.0 { TRUNCATION * a } else { 0.0 };
-    let raster = SphereRaster::with_budget(grid, spheres, clamp + delta + window, MAX_BIN_ENTRIES)
-        .map_err(|e| E::from(BinderError::Raster(e)))?;
+    let search = SmoothedDistance::new(sm, delta, a, clamp);
+    let raster = search.raster::<E>(grid, spheres)?;
     let mut field = vec![0f32; grid.voxel_count()];
     raster.scan(
         &mut field,
         Nearest::default,
-        |dist, cands, _, p, v| {
-            let n = dist.find(cands, p, sm, (window, clamp + delta), |_, _| false);
-            let value = if n == 0 {
-                clamp
-            } else if a > 0.0 {
-                log_sum_exp(a, &dist.d[..n]) - delta
-            } else {
-                dist.d[0] - delta
-            };
+        |near, cands, _, p, v| {
+            let value = search.at(cands, p, near).map_or(clamp, |(_, lse)| lse);
             *v = value.clamp(-clamp, clamp) as f32;
         },
         progress,
@@ -643,54 +683,38 @@ where
     E: BinderFailure,
     P: Fn(u64, u64) -> Result<(), E> + Sync,
 {
-    let sm = Smoothing {
-        k: sm.k.clamp(1, MAX_K),
-        ..sm
-    };
-    let window = if a > 0.0 { TRUNCATION * a } else { 0.0 };
     // A point further than a ln k from every corrected sphere is outside the union
     // (LSE_a >= d_min - a ln k); sub-samples lie within half a diagonal of the centre.
     let half_diagonal = 0.5 * grid.spacing.iter().map(|s| s * s).sum::<f64>().sqrt();
-    let clamp = a * (sm.k as f64).ln() + 2.0 * half_diagonal;
-    let raster = SphereRaster::with_budget(grid, spheres, clamp + delta + window, MAX_BIN_ENTRIES)
-        .map_err(|e| E::from(BinderError::Raster(e)))?;
-    let phase_at = |cands: &[Candidate], q: [f64; 3]| {
-        let mut near = Nearest::default();
-        let n = near.find(cands, q, sm, (window, clamp + delta), |_, _| false);
-        if n == 0 {
-            return 0;
-        }
-        if near.d[0] - delta <= 0.0 {
-            return 1;
-        }
-        let lse = if a > 0.0 {
-            log_sum_exp(a, &near.d[..n])
-        } else {
-            near.d[0]
-        };
-        if lse - delta <= 0.0 {
-            2
-        } else {
-            0
-        }
-    };
+    let clamp = a * (sm.k.clamp(1, MAX_K) as f64).ln() + 2.0 * half_diagonal;
+    let search = SmoothedDistance::new(sm, delta, a, clamp);
+    let raster = search.raster::<E>(grid, spheres)?;
     let mut slots = vec![0u8; grid.voxel_count()];
     let [nx, ny, _] = grid.dims;
     let per_slab = raster.scan(
         &mut slots,
-        Vec::new,
-        |acc: &mut Vec<grainpipe_core::subvoxel::VoxelSamples>, cands, [x, y, z], p, _| {
+        || (Vec::new(), Nearest::default()),
+        |(acc, near): &mut (Vec<grainpipe_core::subvoxel::VoxelSamples>, Nearest),
+         cands,
+         [x, y, z],
+         p,
+         _| {
             let v = x + nx * (y + ny * z);
             if which[v] {
                 let s = grainpipe_core::subvoxel::sample_voxel(p, grid.spacing, samples, 3, |q| {
-                    phase_at(cands, q)
+                    match search.at(cands, q, near) {
+                        None => 0,
+                        Some((nearest, _)) if nearest <= 0.0 => 1,
+                        Some((_, lse)) if lse <= 0.0 => 2,
+                        Some(_) => 0,
+                    }
                 });
                 acc.push((v, s));
             }
         },
         progress,
     )?;
-    Ok(per_slab.into_iter().flatten().collect())
+    Ok(per_slab.into_iter().flat_map(|(acc, _)| acc).collect())
 }
 
 #[cfg(test)]

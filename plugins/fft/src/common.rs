@@ -437,21 +437,7 @@ pub fn check_interfaces(
     grid: &grainpipe_core::Grid,
 ) -> Result<grainpipe_core::Grid, StageError> {
     use grainpipe_core::subvoxel::Interfaces;
-    let solved = p
-        .check(inputs.contains_key("subvoxel"), grid)
-        .map_err(|(k, m)| StageError::param(&k, m))?;
-    if let Some(g) = inputs.get("subvoxel").and_then(|m| m.grid.as_ref()) {
-        if g.dims != grid.dims {
-            return Err(StageError::input(
-                "subvoxel",
-                format!(
-                    "the sub-voxel field is on a {:?} grid and the image on {:?}: connect the \
-                     `subvoxel` output of the step that made this image",
-                    g.dims, grid.dims
-                ),
-            ));
-        }
-    }
+    let solved = p.check(inputs.get("subvoxel"), grid)?;
     if p.interfaces == Interfaces::Composite && !matches!(scheme, Scheme::Hex8 | Scheme::Rotated) {
         return Err(StageError::param(
             "interfaces",

@@ -290,10 +290,7 @@ impl TypedStage for ElasticityFft {
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
         let input_image = input(inputs, "image", Artifact::as_phase_image)?;
-        let field = match inputs.get("subvoxel") {
-            Some(_) => Some(input(inputs, "subvoxel", Artifact::as_field)?),
-            None => None,
-        };
+        let field = InterfaceParams::subvoxel_input(inputs)?;
         let (image, result) = solve_image(p, input_image, field, ctx)?;
         outputs(p, &image, result)
     }

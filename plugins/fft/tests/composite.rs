@@ -323,14 +323,19 @@ fn staggered_and_spectral_composite_are_refused() {
         "subvoxel".into(),
         ArtifactMeta::on_grid(ArtifactKind::Field, grid),
     );
-    for d in [Discretization::Staggered, Discretization::Spectral] {
+    // The preflight error of composite voxels with discretization `d` on `inputs`.
+    let refusal = |d: Discretization, inputs: &InputMetas| {
         let mut p = params(materials(&[(1, 1.0, 0.3)]), d, Solver::Cg, 1e-6);
         p.interface = composite();
-        let e = grainpipe_fft::elasticity::ElasticityFft
-            .preflight(&p, &inputs)
+        grainpipe_fft::elasticity::ElasticityFft
+            .preflight(&p, inputs)
             .map(|_| ())
-            .expect_err("refused");
-        assert!(e.to_string().contains("hex8"), "{e}");
+            .expect_err("refused")
+            .to_string()
+    };
+    for d in [Discretization::Staggered, Discretization::Spectral] {
+        let e = refusal(d, &inputs);
+        assert!(e.contains("hex8"), "{e}");
     }
     // a sub-voxel field on another grid is refused before any work
     let mut other = inputs.clone();
@@ -340,33 +345,10 @@ fn staggered_and_spectral_composite_are_refused() {
         "subvoxel".into(),
         ArtifactMeta::on_grid(ArtifactKind::Field, g2),
     );
-    let mut p = params(
-        materials(&[(1, 1.0, 0.3)]),
-        Discretization::Hex8,
-        Solver::Cg,
-        1e-6,
-    );
-    p.interface = composite();
-    let e = grainpipe_fft::elasticity::ElasticityFft
-        .preflight(&p, &other)
-        .map(|_| ())
-        .expect_err("refused");
-    assert!(e.to_string().contains("[4, 8, 8]"), "{e}");
+    let e = refusal(Discretization::Hex8, &other);
+    assert!(e.contains("[4, 8, 8]"), "{e}");
     // and composite without sub-voxel geometry names both ways to give it
     inputs.shift_remove("subvoxel");
-    let mut p = params(
-        materials(&[(1, 1.0, 0.3)]),
-        Discretization::Hex8,
-        Solver::Cg,
-        1e-6,
-    );
-    p.interface = composite();
-    let e = grainpipe_fft::elasticity::ElasticityFft
-        .preflight(&p, &inputs)
-        .map(|_| ())
-        .expect_err("refused");
-    assert!(
-        e.to_string().contains("subvoxel") && e.to_string().contains("coarsen"),
-        "{e}"
-    );
+    let e = refusal(Discretization::Hex8, &inputs);
+    assert!(e.contains("subvoxel") && e.contains("coarsen"), "{e}");
 }

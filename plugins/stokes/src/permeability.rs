@@ -159,29 +159,6 @@ fn check_params(p: &PermeabilityParams) -> Result<(), StageError> {
     Ok(())
 }
 
-/// Checks the sub-voxel settings against the connected inputs; returns the grid solved on.
-fn composite_grid(
-    p: &PermeabilityParams,
-    inputs: &InputMetas,
-    grid: Grid,
-) -> Result<Grid, StageError> {
-    if let Some(g) = inputs.get("subvoxel").and_then(|m| m.grid.as_ref()) {
-        if g.dims != grid.dims {
-            return Err(StageError::input(
-                "subvoxel",
-                format!(
-                    "the sub-voxel field is on a {:?} grid and the image on {:?}: connect the \
-                     `subvoxel` output of the step that made this image",
-                    g.dims, grid.dims
-                ),
-            ));
-        }
-    }
-    p.interface
-        .check(inputs.contains_key("subvoxel"), &grid)
-        .map_err(|(k, m)| StageError::param(&k, m))
-}
-
 fn check_grid(grid: &Grid) -> Result<(), StageError> {
     let h = grid.spacing[0];
     if grid.spacing.iter().any(|&s| (s / h - 1.0).abs() > 1e-6) {
@@ -287,7 +264,8 @@ impl TypedStage for PermeabilityStage {
         check_params(p)?;
         let fine = grainpipe_core::announced_grid(inputs, "image")?;
         check_grid(&fine)?;
-        let grid = composite_grid(p, inputs, fine.clone())?;
+        // The grid solved on (coarsened or not), the sub-voxel settings checked.
+        let grid = p.interface.check(inputs.get("subvoxel"), &fine)?;
         let n = grid.voxel_count() as f64;
         let composite = p.interface.interfaces == Interfaces::Composite;
         let bpv = bytes_per_voxel(p.fields, composite);
@@ -367,10 +345,7 @@ impl TypedStage for PermeabilityStage {
         let image_in = input(inputs, "image", Artifact::as_phase_image)?;
         check_grid(&image_in.grid)?;
         // Sub-voxel walls: the fluid fraction per voxel, on the grid solved on.
-        let field = match inputs.get("subvoxel") {
-            Some(_) => Some(input(inputs, "subvoxel", Artifact::as_field)?),
-            None => None,
-        };
+        let field = InterfaceParams::subvoxel_input(inputs)?;
         let (image, subvoxel) = p
             .interface
             .prepare(image_in, field)
