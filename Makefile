@@ -12,9 +12,9 @@ PIPE := $(CURDIR)/target/release/pipe
 DEMO_PIPELINES := pipelines/sandcore.yaml
 MORE_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clumps.yaml pipelines/mcm.yaml \
 	pipelines/binder.yaml pipelines/elasticity.yaml pipelines/permeability.yaml pipelines/sandcore-quick.yaml \
-	pipelines/sandcore-spheres.yaml pipelines/cemented2d.yaml pipelines/cemented3d.yaml
+	pipelines/sandcore-spheres.yaml pipelines/sandcore-paper.yaml pipelines/cemented2d.yaml pipelines/cemented3d.yaml
 
-.PHONY: all sysdeps pydeps build demo demo-all test lint rust-test interop python python-test docs-test bench readme-stages clean test-cluster
+.PHONY: all sysdeps pydeps build demo demo-all test lint rust-test interop python python-test docs-test bench readme-stages clean test-cluster validate-sandcore validate-sandcore-unseen validate-sandcore-ablation
 
 all: build
 
@@ -93,6 +93,23 @@ test: lint rust-test interop python-test docs-test
 # script; skipped with a message where they cannot be installed).
 test-cluster: build
 	tests/cluster/run.sh
+
+# The sand-core validation ensembles of docs/VALIDATION.md (validate/sandcore.sh; results
+# under out/validate-sandcore/, tables in its tables.md). Not part of `make test`.
+VALIDATE_VENV ?= .venv-validate
+$(VALIDATE_VENV)/.installed: validate/requirements.txt
+	$(PYTHON) -m venv $(VALIDATE_VENV)
+	$(VALIDATE_VENV)/bin/pip install -q -r validate/requirements.txt
+	touch $@
+
+validate-sandcore: build $(VALIDATE_VENV)/.installed
+	PIPE=$(PIPE) PYTHON=$(VALIDATE_VENV)/bin/python validate/sandcore.sh paper
+
+validate-sandcore-unseen: build $(VALIDATE_VENV)/.installed
+	PIPE=$(PIPE) PYTHON=$(VALIDATE_VENV)/bin/python validate/sandcore.sh unseen
+
+validate-sandcore-ablation: build $(VALIDATE_VENV)/.installed
+	PIPE=$(PIPE) PYTHON=$(VALIDATE_VENV)/bin/python validate/sandcore.sh ablation
 
 bench: build
 	@for d in plugins/*/examples/*_bench.rs; do \

@@ -279,3 +279,62 @@ stages:
         "{err}"
     );
 }
+
+/// The three normal load cases give the orthotropic row's E and Poisson ratios of the six
+/// (the same normal columns of C_app, inverted as a block), its shear moduli NaN, and the
+/// anisotropy column is E_z / mean(E_x, E_y) - 1 of the same row (issue 31: half the time
+/// for an ensemble's anisotropy).
+#[test]
+fn three_normal_load_cases_give_the_orthotropic_moduli_of_six() {
+    let yaml = r#"
+name: normal-cases
+seed: 11
+stages:
+  - id: pack
+    use: packing.rsa
+    with:
+      size: [100 um, 100 um, 100 um]
+      radius: { kind: fixed, value: 17 um }
+      volume_fraction: 0.3
+  - id: voxels
+    use: voxelize.packing
+    in: { packing: pack.packing }
+    with: { voxel_size: 6.25 um }
+  - id: six
+    use: elasticity.fft
+    in: { image: voxels.image }
+    with:
+      materials: { grain: { E: 66.9 GPa, nu: 0.25 }, pore: { E: 43 GPa, nu: 0.17 } }
+      tolerance: 1.0e-8
+  - id: three
+    use: elasticity.fft
+    in: { image: voxels.image }
+    with:
+      materials: { grain: { E: 66.9 GPa, nu: 0.25 }, pore: { E: 43 GPa, nu: 0.17 } }
+      tolerance: 1.0e-8
+      load_cases: [xx, yy, zz]
+"#;
+    let res = run_yaml(&registry(), yaml).unwrap();
+    let (six, three) = (res.table("six.constants"), res.table("three.constants"));
+    let row = 1; // orthotropic
+    for name in [
+        "E_x", "E_y", "E_z", "nu_xy", "nu_xz", "nu_yz", "nu_yx", "nu_zx", "nu_zy",
+    ] {
+        let (a, b) = (
+            six.f64_column(name).unwrap()[row],
+            three.f64_column(name).unwrap()[row],
+        );
+        assert!((a / b - 1.0).abs() < 1e-12, "{name}: {a} vs {b}");
+    }
+    for name in ["G_yz", "G_zx", "G_xy", "relative_error"] {
+        assert!(three.f64_column(name).unwrap()[row].is_nan(), "{name}");
+    }
+    // Only the orthotropic row is defined with three cases.
+    assert!(three.f64_column("E_x").unwrap()[0].is_nan());
+    for t in [six, three] {
+        let e = |n: &str| t.f64_column(n).unwrap()[row];
+        let want = e("E_z") / (0.5 * (e("E_x") + e("E_y"))) - 1.0;
+        let got = t.f64_column("anisotropy_z").unwrap()[row];
+        assert!((got - want).abs() < 1e-15, "{got} vs {want}");
+    }
+}

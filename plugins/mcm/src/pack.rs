@@ -229,6 +229,28 @@ pub struct Schedule {
     pub anneal_steps: usize,
     pub anneal_amplitude: f64,
     pub anneal_cycles: usize,
+    /// Stacked only: free the earlier layers' grains that a stuck layer touches
+    /// (`release_contacts`); false keeps them frozen (Algorithm 2).
+    pub release: bool,
+    /// Stacked only: retries of a jammed layer draw flatter orientations
+    /// (`retry_flat_draws`); false: the uniform draw on every try.
+    pub flatter_retries: bool,
+    /// Stacked only: tries with Algorithm 2 as published (`Schedule::plain`) before the
+    /// fallbacks configured here are used.
+    pub plain_tries: usize,
+}
+
+impl Schedule {
+    /// Algorithm 2 as published: no release, thermalisation, shaking or flatter retries.
+    pub fn plain(&self) -> Schedule {
+        Schedule {
+            shake: false,
+            anneal_steps: 0,
+            release: false,
+            flatter_retries: false,
+            ..*self
+        }
+    }
 }
 
 /// Convergence threshold of intermediate phases, in mean bounding radii. An intermediate
@@ -638,7 +660,7 @@ fn contract_phases(
         // The first stuck step of a layer on earlier ones releases the grains it touches
         // (`release_contacts`); they stay released for the rest of this run, also across the
         // undos below (the snapshots were taken while they were frozen).
-        if released.is_empty() {
+        if sch.release && released.is_empty() {
             released = release_contacts(sys, mode, s_new);
             st.released = released.len();
             st.released_grains = released.clone();

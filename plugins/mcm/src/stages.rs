@@ -156,6 +156,28 @@ pub struct StackedParams {
     /// packing periodic in x, y only (fewer jams, faster; BENCHMARKS.md#mcm).
     #[param(default = true)]
     pub periodic_z: bool,
+    /// After the first stuck contraction step of a layer, free the grains of earlier layers
+    /// that it touches so they can move with it (true, default: fewer jams); false keeps
+    /// earlier layers frozen as in Algorithm 2 (line 2), so a jam is only undone, shaken or
+    /// thermalised within the layer (pipelines/sandcore-paper.yaml).
+    // Released packings end with fewer near-contacts per grain and were about half as stiff
+    // (issue 31); the stage warns whenever it happens.
+    #[param(default = true)]
+    pub release: bool,
+    /// A layer that jammed is placed again with its grains lying flatter on each retry (true,
+    /// default: best of 4, then 16 random orientations by extent along z; fewer jams on
+    /// elongated grains); false places every try with the paper's uniform orientations.
+    // Flatter retries change the orientation fabric and with it the anisotropy (issue 31).
+    #[param(default = true)]
+    pub flatter_retries: bool,
+    /// Tries of each layer with Algorithm 2 as published (earlier layers frozen, no
+    /// thermalisation or shaking, uniform orientations) before the fallbacks above are used:
+    /// 0 (default) uses them from the first try; n > 0 packs a layer plainly up to n times and
+    /// only a layer that jammed on every plain try goes on with `restarts` + 1 tries with the
+    /// fallbacks (warned, with the near-contacts it ends with). The paper's protocol, for
+    /// grains that pack plainly and spheres that do not (pipelines/sandcore-paper.yaml).
+    #[param(default = 0)]
+    pub plain_tries: usize,
     /// Thermalisation of a stuck contraction step before it is undone: Langevin dynamics on
     /// the overlap energy at the step's size for this many steps (0: off), the temperature
     /// falling to zero, then overlap removal; lets a jammed quench rearrange into a denser,
@@ -262,7 +284,13 @@ impl ContractionParams {
     }
 
     /// The contraction schedule from `beta` down to 1.
-    fn schedule(&self, beta: f64, anneal: (usize, f64, usize)) -> Schedule {
+    fn schedule(
+        &self,
+        beta: f64,
+        anneal: (usize, f64, usize),
+        [release, flatter_retries]: [bool; 2],
+        plain_tries: usize,
+    ) -> Schedule {
         let rate0 = beta.powf(1.0 / self.contraction_steps as f64) - 1.0;
         Schedule {
             rate0,
@@ -275,6 +303,9 @@ impl ContractionParams {
             anneal_steps: anneal.0,
             anneal_amplitude: anneal.1,
             anneal_cycles: anneal.2,
+            release,
+            flatter_retries,
+            plain_tries,
         }
     }
 }
@@ -752,8 +783,10 @@ fn history(rows: &[Row]) -> Table {
 }
 
 /// `contract`, and after a failed try (not a cancellation) `replace` followed by another
-/// try, up to `restarts` times; `replace` gets the orientation draws of the new try's
-/// placement (see `retry_flat_draws`). Ok = (stats, tries); Err = (tries, the last failure).
+/// try: first up to `sch.plain_tries` tries with Algorithm 2 as published
+/// (`Schedule::plain`), then up to `restarts` + 1 with the schedule's fallbacks; `replace`
+/// gets the orientation draws of the new try's placement (see `retry_flat_draws`).
+/// Ok = (stats, tries); Err = (tries, the last failure).
 #[allow(clippy::too_many_arguments)]
 fn contract_with_restarts(
     sys: &mut System,
@@ -768,6 +801,12 @@ fn contract_with_restarts(
     mut replace: impl FnMut(&mut System, &mut ChaCha8Rng, usize),
 ) -> Result<(RunStats, usize), (usize, Box<RunFailure>)> {
     let mut tries = 1;
+    let plain_tries = match mode {
+        Mode::Stacked { .. } => sch.plain_tries,
+        Mode::Isotropic { .. } => 0,
+    };
+    let total = plain_tries + restarts + 1;
+    let plain = sch.plain();
     // Shakes re-expand the cell and a restart begins at beta again, so the contraction's own
     // fraction can fall; reports give the furthest fraction reached so a bar never goes back.
     let mut furthest = 0.0f64;
@@ -776,15 +815,19 @@ fn contract_with_restarts(
         progress(furthest)
     };
     loop {
-        match contract(sys, mode, beta, sch, rng, &mut monotonic) {
+        let this = if tries <= plain_tries { &plain } else { sch };
+        match contract(sys, mode, beta, this, rng, &mut monotonic) {
             Ok(st) => return Ok((st, tries)),
-            Err(f) if tries <= restarts && !matches!(f.reason, FailReason::Cancelled(_)) => {
-                // Stacked retries lie flatter (`retry_flat_draws`): the placement and the
-                // warning take the draws from here, the orientation statistics of the layer
-                // depend on them.
+            Err(f) if tries < total && !matches!(f.reason, FailReason::Cancelled(_)) => {
+                // Stacked retries with fallbacks lie flatter (`retry_flat_draws`, counted
+                // from the first try with fallbacks): the placement and the warning take the
+                // draws from here, the orientation statistics of the layer depend on them.
+                let next_plain = tries < plain_tries;
                 let flat_draws = match mode {
-                    Mode::Stacked { .. } => retry_flat_draws(tries + 1),
-                    Mode::Isotropic { .. } => 1,
+                    Mode::Stacked { .. } if sch.flatter_retries && !next_plain => {
+                        retry_flat_draws(tries + 1 - plain_tries)
+                    }
+                    _ => 1,
                 };
                 let flatter = if flat_draws > 1 {
                     format!(
@@ -794,13 +837,24 @@ fn contract_with_restarts(
                 } else {
                     String::new()
                 };
+                let fallbacks = if tries == plain_tries {
+                    format!(
+                        "; all {plain_tries} tries of Algorithm 2 as published jammed, the \
+                         next use the fallbacks (release {}, thermalisation {}, shaking {})",
+                        if sch.release { "on" } else { "off" },
+                        if sch.anneal_steps > 0 { "on" } else { "off" },
+                        if sch.shake { "on" } else { "off" },
+                    )
+                } else {
+                    String::new()
+                };
                 ctx.warn(&format!(
-                    "{what}: try {tries} failed ({}); placing the grains afresh{flatter} and \
-                     contracting again from scale {beta} (try {} of {}; progress resumes \
-                     once the new try passes the furthest point reached)",
+                    "{what}: try {tries} failed ({}){fallbacks}; placing the grains \
+                     afresh{flatter} and contracting again from scale {beta} (try {} of {}; \
+                     progress resumes once the new try passes the furthest point reached)",
                     f.reason,
                     tries + 1,
-                    restarts + 1
+                    total
                 ));
                 tries += 1;
                 replace(sys, rng, flat_draws);
@@ -1226,9 +1280,12 @@ impl TypedStage for Classic {
             }
         }
         let plan = ClassicPlan {
+            // mcm.classic has no earlier layers to release and retries with uniform draws.
             schedule: c.schedule(
                 p.beta,
                 (p.anneal_steps, p.anneal_amplitude, p.anneal_cycles),
+                [false, false],
+                0,
             ),
             size,
         };
@@ -1343,8 +1400,8 @@ impl TypedStage for Stacked {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "mcm.stacked",
-            "2.3.0",
-            "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen (those a jammed layer touches released), soft box on the centroids, each layer filled to eta exactly, jams thermalised and shaken loose",
+            "2.4.0",
+            "Stacked mechanical contraction method (Algorithm 2): layer by layer, periodic in x, y (and z), contraction along z only, earlier layers frozen (those a jammed layer touches released, unless `release: false`), soft box on the centroids, each layer filled to eta exactly, jams thermalised and shaken loose (after `plain_tries` tries of Algorithm 2 as published)",
         )
         .inputs(vec![library_port("clumps to pack (scrambled Sobol sampling on bounding diameter, Remark 2); spheres from `radius` if absent")])
         .outputs(outputs())
@@ -1408,6 +1465,8 @@ impl TypedStage for Stacked {
             c.schedule(
                 p.beta,
                 (p.anneal_steps, p.anneal_amplitude, p.anneal_cycles),
+                [p.release, p.flatter_retries],
+                p.plain_tries,
             ),
         ))
     }

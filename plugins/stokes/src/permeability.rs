@@ -189,7 +189,7 @@ impl TypedStage for PermeabilityStage {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "stokes.permeability",
-            "1.1.0",
+            "1.2.0",
             "Apparent permeability tensor of a periodic voxel pore space (Donval et al. 2025, \
              section 3.3, eq. 3.6-3.8): for a body force f along each load direction, the \
              periodic Stokes flow mu Lap u - grad p = -f, div u = 0 with u = 0 on the solid is \
@@ -236,7 +236,8 @@ impl TypedStage for PermeabilityStage {
                 "report",
                 ArtifactKind::Table,
                 "per load direction: kappa (m^2, darcy), Darcy and mean pore velocity, \
-                 iterations, residuals, mass error, porosity, note",
+                 iterations, residuals, mass error, porosity, the anisotropy kappa_zz / \
+                 mean(kappa_xx, kappa_yy) - 1 (NaN unless x, y and z ran), note",
             ),
             PortSpec::new(
                 "history",
@@ -448,6 +449,9 @@ impl TypedStage for PermeabilityStage {
         } else {
             f64::NAN
         };
+        // kappa_zz below the in-plane permeabilities (Donval et al. 2025, section 4.4); NaN
+        // unless x, y and z were solved (unsolved columns are NaN).
+        let anisotropy_z = tensor[2][2] / (0.5 * (tensor[0][0] + tensor[1][1])) - 1.0;
         let mut names = Vec::new();
         let (mut k_si, mut k_d, mut u_darcy, mut u_pore) = (vec![], vec![], vec![], vec![]);
         let (mut iters, mut resid, mut true_res, mut mass, mut perc, mut notes) =
@@ -519,6 +523,7 @@ impl TypedStage for PermeabilityStage {
             )
             .with_i64("percolates", "1", perc)
             .with_f64("symmetry_error", "1", vec![sym; ncase])
+            .with_f64("anisotropy_z", "1", vec![anisotropy_z; ncase])
             .with_str("note", notes);
         let history = Table::new("history")
             .with_str("direction", h_dir)

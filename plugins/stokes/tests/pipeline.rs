@@ -57,6 +57,13 @@ fn permeability_pipeline_runs_and_exports() {
         );
     }
     assert!(sym[0] < 1e-4, "symmetry error {}", sym[0]);
+    // kappa_zz below the in-plane mean (section 4.4), the same number in every row.
+    let aniso = res.column("flow.report", "anisotropy_z");
+    let want = kappa[2] / (0.5 * (kappa[0] + kappa[1])) - 1.0;
+    assert!(
+        aniso.iter().all(|&a| (a - want).abs() < 1e-15),
+        "{aniso:?} vs {want}"
+    );
     // The velocity field of the x case averages to the Darcy velocity (eq. (3.7)): the
     // voxel-centred values are means of faces, and the cell is periodic.
     let Artifact::Field(v) = res.artifact("flow.velocity") else {

@@ -226,6 +226,46 @@ pub fn engineering(c: &M6) -> [f64; 12] {
     ]
 }
 
+/// The engineering constants of the closest orthotropic stiffness to `c` (as
+/// `engineering(&project(c, Class::Orthotropic).0)`) from the columns that were computed
+/// (`ran[k]`: the load case of Voigt column k ran). The orthotropic projection keeps the normal
+/// 3x3 block and the shear diagonal and drops the rest, so E_x, E_y, E_z and the Poisson
+/// ratios need only the three normal load cases (the inverse of the normal block), and each
+/// shear modulus only its own shear case; what was not computed is NaN, as is everything
+/// without the three normal cases or with a singular normal block.
+pub fn orthotropic_from_columns(c: &M6, ran: [bool; 6]) -> [f64; 12] {
+    let mut e = [f64::NAN; 12];
+    if !(ran[0] && ran[1] && ran[2]) {
+        return e;
+    }
+    let cs = symmetrize(c);
+    // The normal block, inverted within a 6x6 whose shear part is the identity.
+    let mut block = [[0.0; 6]; 6];
+    for (i, row) in block.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = if i < 3 && j < 3 {
+                cs[i][j]
+            } else if i == j {
+                1.0
+            } else {
+                0.0
+            };
+        }
+    }
+    let Some(s) = invert(&block) else {
+        return e;
+    };
+    for i in 0..3 {
+        e[i] = 1.0 / s[i][i];
+        if ran[3 + i] {
+            e[3 + i] = cs[3 + i][3 + i];
+        }
+    }
+    let nu = |i: usize, j: usize| -s[j][i] / s[i][i];
+    e[6..].copy_from_slice(&[nu(0, 1), nu(0, 2), nu(1, 2), nu(1, 0), nu(2, 0), nu(2, 1)]);
+    e
+}
+
 pub const ENGINEERING_NAMES: [&str; 12] = [
     "E_x", "E_y", "E_z", "G_yz", "G_zx", "G_xy", "nu_xy", "nu_xz", "nu_yz", "nu_yx", "nu_zx",
     "nu_zy",
@@ -251,5 +291,56 @@ mod tests {
             let (_, d) = project(&c, class);
             assert!(d < 1e-14);
         }
+    }
+
+    /// The constants from the computed columns equal those of the projection (a Gram solve
+    /// over the class basis) on a fully anisotropic stiffness, and need only the normal
+    /// columns for E and nu.
+    #[test]
+    fn orthotropic_constants_from_the_normal_columns_equal_the_projection() {
+        // A positive definite, fully anisotropic stiffness: D + 0.2 * (R + R^T), R fixed.
+        let mut c = [[0.0; 6]; 6];
+        for i in 0..6 {
+            for j in 0..6 {
+                let r = ((i * 7 + j * 3) % 11) as f64 / 11.0 - 0.5;
+                let rt = ((j * 7 + i * 3) % 11) as f64 / 11.0 - 0.5;
+                c[i][j] = 1e9 * (0.2 * (r + rt) + if i == j { 5.0 + i as f64 } else { 0.0 });
+            }
+        }
+        for i in 0..3 {
+            for j in 0..3 {
+                if i != j {
+                    c[i][j] += 1.5e9;
+                }
+            }
+        }
+        let want = engineering(&project(&c, Class::Orthotropic).0);
+        let full = orthotropic_from_columns(&c, [true; 6]);
+        for k in 0..12 {
+            assert!(
+                (full[k] / want[k] - 1.0).abs() < 1e-12,
+                "{k}: {} {}",
+                full[k],
+                want[k]
+            );
+        }
+        // Only the normal cases: columns 3-5 of the apparent stiffness are zero then.
+        let mut normal = c;
+        for row in normal.iter_mut() {
+            for v in row.iter_mut().skip(3) {
+                *v = 0.0;
+            }
+        }
+        let got = orthotropic_from_columns(&normal, [true, true, true, false, false, false]);
+        for k in (0..3).chain(6..12) {
+            assert!(
+                (got[k] / want[k] - 1.0).abs() < 1e-12,
+                "{k}: {} {}",
+                got[k],
+                want[k]
+            );
+        }
+        assert!(got[3..6].iter().all(|g| g.is_nan()));
+        assert!(orthotropic_from_columns(&c, [true, true, false, true, true, true])[0].is_nan());
     }
 }
