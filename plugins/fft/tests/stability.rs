@@ -160,14 +160,5 @@ fn a_stagnated_single_precision_solve_is_repeated_in_double() {
     let (_, double) = solve_image(&p, &img, None, &ctx).unwrap();
     assert_eq!(single.stiffness, double.stiffness);
     assert!(single.history.iter().all(|h| h.2.is_finite()));
-    assert!(
-        single
-            .history
-            .iter()
-            .rev()
-            .find(|h| h.0 == "xx")
-            .unwrap()
-            .2
-            <= 1e-9
-    );
+    assert!(single.history.iter().rev().find(|h| h.0 == "xx").unwrap().2 <= 1e-9);
 }
