@@ -6,7 +6,32 @@ use crate::engine::{run_quietly, RunResult};
 use crate::model::{Artifact, ColumnData, Table};
 use crate::pipeline::{PipelineDoc, PipelineError};
 use crate::registry::Registry;
+use crate::stage::{Level, Reporter};
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+
+/// A reporter that keeps the warnings of a stage run (tests assert on what they say).
+#[derive(Default)]
+pub struct WarningLog(Mutex<Vec<String>>);
+
+impl WarningLog {
+    /// The warnings so far, in the order given.
+    pub fn warnings(&self) -> Vec<String> {
+        self.0.lock().unwrap().clone()
+    }
+}
+
+impl Reporter for WarningLog {
+    fn progress(&self, _: u64, _: u64) {}
+    fn message(&self, level: Level, text: &str) {
+        if level == Level::Warn {
+            self.0.lock().unwrap().push(text.to_string());
+        }
+    }
+    fn cancelled(&self) -> bool {
+        false
+    }
+}
 
 /// The workspace root, found from a crate's manifest directory (the nearest ancestor that
 /// holds `pipelines/`).

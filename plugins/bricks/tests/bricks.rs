@@ -477,35 +477,20 @@ fn curved_domain_takes_any_cut_out_ball() {
     assert_eq!(pk.domain.excluded.len(), 1);
 }
 
-/// Records warnings (the engine prints them).
-#[derive(Default)]
-struct WarningLog(std::sync::Mutex<Vec<String>>);
-impl grainpipe_core::stage::Reporter for WarningLog {
-    fn progress(&self, _: u64, _: u64) {}
-    fn message(&self, level: grainpipe_core::stage::Level, text: &str) {
-        if level == grainpipe_core::stage::Level::Warn {
-            self.0.lock().unwrap().push(text.to_string());
-        }
-    }
-    fn cancelled(&self) -> bool {
-        false
-    }
-}
-
 #[test]
 fn a_sample_failing_its_ks_test_is_explained_in_a_warning() {
     // Example 1A rejects large draws that no longer fit, which biases the radii: the
     // report's own KS columns decide whether a warning is due, and the warning must give
     // the reason and the mean shift the report's mean columns show.
     let p = Method1Params::default();
-    let log = WarningLog::default();
+    let log = grainpipe_core::testing::WarningLog::default();
     let pf = Method1.preflight(&p, &Default::default()).unwrap();
     let o = Method1
         .run(&p, &pf.plan, &Default::default(), &RunContext::new(7, &log))
         .unwrap();
     let (_, _, t) = parts(&o);
     let (ks, critical) = (val(t, "ks_distance"), val(t, "ks_critical_0_05"));
-    let warnings = log.0.lock().unwrap().clone();
+    let warnings = log.warnings();
     let ks_warnings: Vec<&String> = warnings
         .iter()
         .filter(|w| w.contains("Kolmogorov-Smirnov"))

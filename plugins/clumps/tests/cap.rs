@@ -7,10 +7,9 @@ use grainpipe_clumps::clumps::{oversize, Library, MAX_DROPPED_SHARE};
 use grainpipe_clumps::grains::FromHarmonics;
 use grainpipe_core::engine::{plan, PlanOptions};
 use grainpipe_core::pipeline::PipelineDoc;
-use grainpipe_core::stage::{Level, Reporter};
 use grainpipe_core::*;
 use std::path::Path;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 fn registry() -> Registry {
     let mut r = Registry::new();
@@ -128,21 +127,6 @@ fn announced_sizes_match_the_clumps_garcia_builds() {
     assert!(ds < 0.005, "volume shares differ by up to {ds}");
 }
 
-#[derive(Default)]
-struct Capture(Mutex<Vec<String>>);
-
-impl Reporter for Capture {
-    fn progress(&self, _: u64, _: u64) {}
-    fn message(&self, level: Level, text: &str) {
-        if level == Level::Warn {
-            self.0.lock().unwrap().push(text.to_string());
-        }
-    }
-    fn cancelled(&self) -> bool {
-        false
-    }
-}
-
 /// Sphere "grains" of the given diameters [um], named g<diameter>.
 fn spheres(diameters: &[f64]) -> ClumpLibrary {
     ClumpLibrary {
@@ -185,9 +169,9 @@ fn run_library(
         "library".into(),
         Arc::new(Artifact::ClumpLibrary(spheres(diameters))),
     );
-    let rep = Capture::default();
+    let rep = grainpipe_core::testing::WarningLog::default();
     let out = Library.run(&p, &pf.plan, &inputs, &RunContext::new(1, &rep));
-    (out, rep.0.into_inner().unwrap())
+    (out, rep.warnings())
 }
 
 #[test]

@@ -98,22 +98,6 @@ fn rotated_cg_on_pores_is_slow_and_soft_compared_with_staggered() {
     );
 }
 
-/// A reporter that keeps the warnings.
-#[derive(Default)]
-struct Warnings(std::sync::Mutex<Vec<String>>);
-
-impl grainpipe_core::stage::Reporter for Warnings {
-    fn progress(&self, _: u64, _: u64) {}
-    fn message(&self, level: grainpipe_core::stage::Level, text: &str) {
-        if level == grainpipe_core::stage::Level::Warn {
-            self.0.lock().unwrap().push(text.to_string());
-        }
-    }
-    fn cancelled(&self) -> bool {
-        false
-    }
-}
-
 /// `precision: single` where f32 round-off stalls the residual above the tolerance (here a
 /// tolerance of 1e-9, far below what f32 reaches): the stage warns and gives the
 /// double-precision result, bit for bit that of `precision: double`, instead of failing
@@ -133,7 +117,7 @@ fn a_stagnated_single_precision_solve_is_repeated_in_double() {
     p.stagnation_window = 20;
     p.max_iterations = 3000;
     p.precision = Precision::F32;
-    let rep = Warnings::default();
+    let rep = grainpipe_core::testing::WarningLog::default();
     let ctx = grainpipe_core::RunContext::new(1, &rep);
     let mats = grainpipe_fft::common::resolve(
         "materials",
@@ -150,7 +134,7 @@ fn a_stagnated_single_precision_solve_is_repeated_in_double() {
         plain.as_ref().map(|r| r.history.len())
     );
     let (_, single) = solve_image(&p, &img, None, &ctx).unwrap();
-    let w = rep.0.lock().unwrap().clone();
+    let w = rep.warnings();
     assert!(
         w.iter()
             .any(|w| w.contains("solved again in double precision")),

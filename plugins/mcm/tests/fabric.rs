@@ -3,13 +3,12 @@
 //! columns and fallback warnings against an independent count on their own packings.
 
 mod common;
-use grainpipe_core::stage::{Level, Reporter};
+use grainpipe_core::testing::WarningLog;
 use grainpipe_core::{Artifact, ColumnData, InputMetas, Inputs, Outputs, RunContext, TypedStage};
 use grainpipe_mcm::fabric::*;
 use grainpipe_mcm::stages::{Classic, Stacked};
 use rand::{RngExt, SeedableRng};
 use serde_json::json;
-use std::sync::Mutex;
 
 /// Spheres of radius 0.5 on a 4 x 4 x 4 simple-cubic lattice of
 /// spacing 1 (touching), periodic, shifted by `offset` (so positions cross the box faces).
@@ -240,22 +239,6 @@ fn near_contacts_match_the_brute_force_definition_on_random_packings() {
     }
 }
 
-/// A reporter that keeps the warnings.
-#[derive(Default)]
-struct Capture(Mutex<Vec<String>>);
-
-impl Reporter for Capture {
-    fn progress(&self, _: u64, _: u64) {}
-    fn message(&self, level: Level, text: &str) {
-        if level == Level::Warn {
-            self.0.lock().unwrap().push(text.to_string());
-        }
-    }
-    fn cancelled(&self) -> bool {
-        false
-    }
-}
-
 fn run_capturing<S: TypedStage>(
     stage: &S,
     params: serde_json::Value,
@@ -263,15 +246,14 @@ fn run_capturing<S: TypedStage>(
 ) -> (Outputs, Vec<String>) {
     let p: S::Params = serde_json::from_value(params).unwrap();
     let pf = stage.preflight(&p, &InputMetas::new()).unwrap();
-    let rep = Capture::default();
+    let rep = WarningLog::default();
     let out = stage
         .run(&p, &pf.plan, &Inputs::new(), &RunContext::new(seed, &rep))
         .unwrap();
     for (port, meta) in &pf.outputs {
         meta.check(&out[port.as_str()]).unwrap();
     }
-    let w = rep.0.into_inner().unwrap();
-    (out, w)
+    (out, rep.warnings())
 }
 
 fn col_f64(out: &Outputs, name: &str) -> Vec<f64> {
