@@ -155,17 +155,14 @@ pub fn memory(p: &ElasticityParams, voxels: u64) -> u64 {
         Precision::F64 => 8,
         Precision::F32 => 4,
     };
-    let lane = bytes_per_voxel(p.discretization.scheme(), p.solver == Solver::Cg, real);
+    let lane_of = |real| bytes_per_voxel(p.discretization.scheme(), p.solver == Solver::Cg, real);
+    let lane = lane_of(real);
     let lanes = concurrent_cases(p.load_cases.len(), (lane * voxels as f64) as u64) as f64;
     let mut b = lanes * lane;
     if p.precision == Precision::F32 {
         // A stagnated single-precision solve is repeated in double, one load case at a time
         // (`solve_image`).
-        b = b.max(bytes_per_voxel(
-            p.discretization.scheme(),
-            p.solver == Solver::Cg,
-            8,
-        ));
+        b = b.max(lane_of(8));
     }
     if p.fields {
         // 12 f64 per voxel and load case, plus the voxel values gathered per plane.

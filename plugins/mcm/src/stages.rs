@@ -801,10 +801,8 @@ fn contract_with_restarts(
     mut replace: impl FnMut(&mut System, &mut ChaCha8Rng, usize),
 ) -> Result<(RunStats, usize), (usize, Box<RunFailure>)> {
     let mut tries = 1;
-    let plain_tries = match mode {
-        Mode::Stacked { .. } => sch.plain_tries,
-        Mode::Isotropic { .. } => 0,
-    };
+    // mcm.classic's schedule has no plain tries and no flatter retries.
+    let plain_tries = sch.plain_tries;
     let total = plain_tries + restarts + 1;
     let plain = sch.plain();
     // Shakes re-expand the cell and a restart begins at beta again, so the contraction's own
@@ -823,11 +821,10 @@ fn contract_with_restarts(
                 // from the first try with fallbacks): the placement and the warning take the
                 // draws from here, the orientation statistics of the layer depend on them.
                 let next_plain = tries < plain_tries;
-                let flat_draws = match mode {
-                    Mode::Stacked { .. } if sch.flatter_retries && !next_plain => {
-                        retry_flat_draws(tries + 1 - plain_tries)
-                    }
-                    _ => 1,
+                let flat_draws = if sch.flatter_retries && !next_plain {
+                    retry_flat_draws(tries + 1 - plain_tries)
+                } else {
+                    1
                 };
                 let flatter = if flat_draws > 1 {
                     format!(

@@ -234,35 +234,24 @@ pub fn engineering(c: &M6) -> [f64; 12] {
 /// shear modulus only its own shear case; what was not computed is NaN, as is everything
 /// without the three normal cases or with a singular normal block.
 pub fn orthotropic_from_columns(c: &M6, ran: [bool; 6]) -> [f64; 12] {
-    let mut e = [f64::NAN; 12];
     if !(ran[0] && ran[1] && ran[2]) {
-        return e;
+        return [f64::NAN; 12];
     }
-    let cs = symmetrize(c);
-    // The normal block, inverted within a 6x6 whose shear part is the identity.
-    let mut block = [[0.0; 6]; 6];
-    for (i, row) in block.iter_mut().enumerate() {
-        for (j, v) in row.iter_mut().enumerate() {
-            *v = if i < 3 && j < 3 {
-                cs[i][j]
-            } else if i == j {
-                1.0
-            } else {
-                0.0
-            };
-        }
-    }
-    let Some(s) = invert(&block) else {
-        return e;
-    };
+    // The projection itself: the normal block and the shear diagonal, with 1 standing in for
+    // a shear case that did not run (so the block stays invertible; its modulus is NaN).
+    let mut p = [[0.0; 6]; 6];
     for i in 0..3 {
-        e[i] = 1.0 / s[i][i];
-        if ran[3 + i] {
-            e[3 + i] = cs[3 + i][3 + i];
+        p[i][..3].copy_from_slice(&c[i][..3]);
+    }
+    for k in 3..6 {
+        p[k][k] = if ran[k] { c[k][k] } else { 1.0 };
+    }
+    let mut e = engineering(&p);
+    for k in 3..6 {
+        if !ran[k] {
+            e[k] = f64::NAN;
         }
     }
-    let nu = |i: usize, j: usize| -s[j][i] / s[i][i];
-    e[6..].copy_from_slice(&[nu(0, 1), nu(0, 2), nu(1, 2), nu(1, 0), nu(2, 0), nu(2, 1)]);
     e
 }
 
