@@ -1,6 +1,7 @@
 //! grainpipe-core: the volume data model, the stage contract, the registry and the YAML
 //! pipeline engine. The core knows no plugin; plugins fill a [`Registry`].
 
+pub mod boundary;
 pub mod cache;
 pub mod distributions;
 pub mod engine;

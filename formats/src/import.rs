@@ -109,6 +109,12 @@ pub struct ImportOptions {
     /// unit of a field (overrides the file's)
     #[param(ty = "unit string")]
     pub unit: String,
+    /// which axes [x, y, z] the image repeats along (a packing's box, a periodic simulation
+    /// cell); overrides the file's. Default: what the file states (grainpipe's own .h5, .nc
+    /// and .vti record it), else not periodic, which is what a CT scan or a cut sample is.
+    /// The FFT and Stokes solvers need a `boundary:` for a non-periodic axis.
+    #[param(ty = "[x, y, z]")]
+    pub periodic: Option<[bool; 3]>,
 }
 
 /// What preflight learned from the file header and run needs: the header (to check the data
@@ -241,7 +247,7 @@ fn preflight_common(
         dims: h.dims,
         spacing,
         origin: o.origin.map(|o| o.si()).or(h.origin).unwrap_or([0.0; 3]),
-        periodic: header.periodic,
+        periodic: o.periodic.unwrap_or(header.periodic),
     };
     let out_bytes = match o.as_ {
         ImportAs::PhaseImage => 1,
@@ -430,7 +436,7 @@ impl TypedStage for ImportRaw {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "import.raw",
-            "1.0.0",
+            "1.1.0",
             "Reads a headerless raw volume (x fastest, then y, then z) whose dims, element \
              type, byte order and voxel size are given here; preflight checks the file size.",
         )
@@ -508,7 +514,7 @@ macro_rules! named_import {
             type Params = $params;
             type Plan = ImportPlan;
             fn info(&self) -> StageInfo {
-                StageInfo::new($id, "1.0.0", $doc).outputs(outputs())
+                StageInfo::new($id, "1.1.0", $doc).outputs(outputs())
             }
 
             fn preflight(
@@ -609,7 +615,7 @@ impl TypedStage for ImportTiff {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "import.tiff",
-            "1.0.0",
+            "1.1.0",
             "Reads a TIFF stack as a volume: a multi-page TIFF (page k = slice z = k) or a \
              directory of single-page TIFFs in file-name order, as CT software writes them. \
              Grayscale 8/16/32/64-bit pages; row r of a page is y = r. Preflight reads every \

@@ -710,6 +710,57 @@ fn import_raw_preflight_checks_size_and_run_gives_labels() {
     assert!(e.to_string().contains("nope.raw"), "{e}");
 }
 
+/// Periodicity is stated, never guessed: a raw file (which cannot state it) is not periodic
+/// unless the YAML says so; a file that records it keeps it; `periodic:` overrides the file.
+#[test]
+fn import_periodicity_comes_from_the_file_or_the_yaml() {
+    let d = tmp();
+    let img = image([4, 3, 2]);
+    let raw = d.path().join("labels.raw");
+    std::fs::write(&raw, &img.labels).unwrap();
+    let mut rp = RawParams {
+        path: raw.display().to_string(),
+        dims: [4, 3, 2],
+        spacing: Some(Lengths3::One(units::Q::new(1e-6))),
+        ..RawParams::default()
+    };
+    let periodic_of =
+        |pf: &Preflight<ImportPlan>| pf.outputs["image"].grid.as_ref().unwrap().periodic;
+    let pf = ImportRaw.preflight(&rp, &InputMetas::new()).unwrap();
+    assert_eq!(periodic_of(&pf), [false; 3]);
+    rp.options.periodic = Some([true, false, true]);
+    let pf = ImportRaw.preflight(&rp, &InputMetas::new()).unwrap();
+    assert_eq!(periodic_of(&pf), [true, false, true]);
+    let out = ImportRaw
+        .run(&rp, &pf.plan, &Inputs::new(), &ctx())
+        .unwrap();
+    assert_eq!(
+        out["image"].as_phase_image().unwrap().grid.periodic,
+        [true, false, true]
+    );
+
+    // The .h5 records [false, true, true]; kept by default, replaced when the YAML says so.
+    let h5 = d.path().join("i.h5");
+    write_h5(&Artifact::PhaseImage(img.clone()), &h5, &prov()).unwrap();
+    let mut hp = Hdf5Params {
+        path: h5.display().to_string(),
+        dataset: "phase".into(),
+        ..Default::default()
+    };
+    let pf = ImportHdf5.preflight(&hp, &InputMetas::new()).unwrap();
+    assert_eq!(periodic_of(&pf), [false, true, true]);
+    hp.options.periodic = Some([false; 3]);
+    let pf = ImportHdf5.preflight(&hp, &InputMetas::new()).unwrap();
+    assert_eq!(periodic_of(&pf), [false; 3]);
+    let out = ImportHdf5
+        .run(&hp, &pf.plan, &Inputs::new(), &ctx())
+        .unwrap();
+    assert_eq!(
+        out["image"].as_phase_image().unwrap().grid.periodic,
+        [false; 3]
+    );
+}
+
 #[test]
 fn import_refuses_labels_above_255() {
     let d = tmp();

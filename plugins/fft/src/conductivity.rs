@@ -15,10 +15,12 @@ use crate::common::{
     check_interfaces, composite_table, phases_present, resolve, solve_failure, unused_keys,
     validate_solver, Discretization, Precision, Solver,
 };
+use crate::elasticity::{mirrored_cell, FFT_BOUNDARIES};
 use crate::kernel::composite::{laminate_conductivity, majority_pore_conductivity, Composite};
 use crate::kernel::scalar::{bytes_per_voxel, Scalar};
 use crate::kernel::solver::{solve, SolveOptions};
 use crate::real::Real;
+use grainpipe_core::boundary::BoundaryParams;
 use grainpipe_core::subvoxel::{InterfaceParams, Interfaces, PoreVoxels};
 use std::sync::Arc;
 
@@ -80,6 +82,8 @@ pub struct ConductivityParams {
     pub precision: Precision,
     #[param(flatten)]
     pub interface: InterfaceParams,
+    #[param(flatten)]
+    pub boundary: BoundaryParams,
 }
 
 pub struct ConductivityFft;
@@ -108,8 +112,10 @@ impl TypedStage for ConductivityFft {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "conductivity.fft",
-            "1.1.0",
-            "Apparent thermal conductivity of a periodic voxel image: for each macroscopic \
+            "1.2.0",
+            "Apparent thermal conductivity of a periodic voxel image (an image that is not \
+             periodic, a scan, needs boundary: mirror, the image reflected across its \
+             non-periodic axes, or periodic, its faces glued): for each macroscopic \
              unit temperature gradient G the periodic fluctuation t solving \
              div k(x)(G + grad t) = 0 is computed by FFT-preconditioned conjugate gradients \
              (or the basic fixed-point scheme) with the staggered (finite-volume, harmonic \
@@ -122,7 +128,7 @@ impl TypedStage for ConductivityFft {
             PortSpec::new(
                 "image",
                 ArtifactKind::PhaseImage,
-                "periodic phase image (label 0 = pore unless given a value)",
+                "phase image, periodic or with `boundary:` (label 0 = pore unless given a value)",
             ),
             PortSpec::optional(
                 "subvoxel",
@@ -177,19 +183,14 @@ impl TypedStage for ConductivityFft {
             }
         }
         let grid = grainpipe_core::announced_grid(inputs, "image")?;
-        if !grid.periodic.iter().all(|&b| b) {
-            return Err(StageError::input(
-                "image",
-                format!(
-                    "the cell problem is periodic but the image is periodic along {:?} only",
-                    grid.periodic
-                ),
-            ));
-        }
+        let bc = p.boundary.resolve(grid.periodic, &FFT_BOUNDARIES)?;
         let grid = check_interfaces(&p.interface, p.discretization.scheme(), inputs, &grid)?;
+        // The mirrored cell is what the solver holds, with its labels.
+        let n = bc.solved_grid(&grid).voxel_count() as u64;
+        let mirrored_labels = if bc.voxel_factor() > 1 { n } else { 0 };
         let cases = p.load_cases.len() as u64;
         Ok(
-            Preflight::from_info(&self.info(), memory(p, grid.voxel_count() as u64))
+            Preflight::from_info(&self.info(), memory(p, n) + mirrored_labels)
                 .announce(
                     "conductivity",
                     ArtifactMeta::of(ArtifactKind::Tensor).with_count(9, Some([9, 9])),
@@ -256,7 +257,12 @@ pub fn solve_image(
         .interface
         .prepare(input_image, field)
         .map_err(|m| StageError::input("subvoxel", m))?;
-    let image = image.as_ref();
+    let bc = p.boundary.resolve(image.grid.periodic, &FFT_BOUNDARIES)?;
+    if let Some(w) = bc.warning() {
+        ctx.warn(&w);
+    }
+    let (mirrored, subvoxel) = mirrored_cell(&bc, image.as_ref(), subvoxel, ctx);
+    let image = mirrored.as_ref().unwrap_or(image.as_ref());
     let k = resolve(
         "conductivities",
         &p.conductivities,

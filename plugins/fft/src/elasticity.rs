@@ -22,6 +22,9 @@ use crate::kernel::elastic::{bytes_per_voxel, Elastic};
 use crate::kernel::solver::{solve, SolveError, SolveOptions};
 use crate::kernel::Iso;
 use crate::real::Real;
+use grainpipe_core::boundary::{
+    crop_lower, mirror_image, mirror_subvoxel, Boundary, BoundaryParams, ResolvedBoundary,
+};
 use grainpipe_core::subvoxel::{InterfaceParams, Interfaces, PoreVoxels};
 use std::sync::Arc;
 
@@ -110,9 +113,14 @@ pub struct ElasticityParams {
     pub fields: bool,
     #[param(flatten)]
     pub interface: InterfaceParams,
+    #[param(flatten)]
+    pub boundary: BoundaryParams,
 }
 
 pub struct ElasticityFft;
+
+/// The boundaries the FFT solvers offer (walls are a flow boundary).
+pub const FFT_BOUNDARIES: [Boundary; 2] = [Boundary::Periodic, Boundary::Mirror];
 
 /// What preflight worked out: the grid and the memory per voxel.
 #[derive(Clone, Debug)]
@@ -181,7 +189,7 @@ impl TypedStage for ElasticityFft {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "elasticity.fft",
-            "1.2.0",
+            "1.3.0",
             "Apparent stiffness of a periodic voxel image (Donval et al. 2025, section 3.2, \
              eq. 3.2-3.5): for each macroscopic unit strain E the periodic displacement \
              fluctuation u solving div C(x):(E + grad^s u) = 0 is computed by FFT-preconditioned \
@@ -192,13 +200,13 @@ impl TypedStage for ElasticityFft {
              Voigt order 11, 22, 33, 23, 13, 12 with engineering shear strains (C44 is a \
              shear modulus), in Pa. The solver fails, naming the residual reached, on \
              stagnation, divergence, loss of positive definiteness or the iteration limit. \
-             Memory: about 177 bytes per voxel per load case solved at a time (two at a time with two or more threads while one state is at most 1 GiB, about 170^3) for staggered CG in double precision, half in single.",
+             An image that is not periodic (a scan) needs boundary: mirror (the image reflected across its non-periodic axes, the fields given on its grid) or periodic (its faces glued, warned). Memory: about 177 bytes per voxel per load case solved at a time (two at a time with two or more threads while one state is at most 1 GiB, about 170^3) for staggered CG in double precision, half in single.",
         )
         .inputs(vec![
             PortSpec::new(
                 "image",
                 ArtifactKind::PhaseImage,
-                "periodic phase image (label 0 = pore unless given a material)",
+                "phase image, periodic or with `boundary:` (label 0 = pore unless given a material)",
             ),
             PortSpec::optional(
                 "subvoxel",
@@ -251,19 +259,13 @@ impl TypedStage for ElasticityFft {
     ) -> Result<Preflight<ElasticityPlan>, StageError> {
         check_params(p)?;
         let grid = grainpipe_core::announced_grid(inputs, "image")?;
-        if !grid.periodic.iter().all(|&b| b) {
-            return Err(StageError::input(
-                "image",
-                format!(
-                    "the cell problem is periodic but the image is periodic along {:?} only",
-                    grid.periodic
-                ),
-            ));
-        }
+        let bc = p.boundary.resolve(grid.periodic, &FFT_BOUNDARIES)?;
         let grid = check_interfaces(&p.interface, p.discretization.scheme(), inputs, &grid)?;
-        let n = grid.voxel_count() as u64;
+        // The mirrored cell is what the solver holds, with its labels.
+        let n = bc.solved_grid(&grid).voxel_count() as u64;
+        let mirrored_labels = if bc.voxel_factor() > 1 { n } else { 0 };
         let cases = p.load_cases.len() as u64;
-        let mut pf = Preflight::from_info(&self.info(), memory(p, n))
+        let mut pf = Preflight::from_info(&self.info(), memory(p, n) + mirrored_labels)
             .announce(
                 "stiffness",
                 ArtifactMeta::of(ArtifactKind::Tensor).with_count(36, Some([36, 36])),
@@ -320,7 +322,12 @@ pub fn solve_image<'a>(
         .interface
         .prepare(input_image, field)
         .map_err(|m| StageError::input("subvoxel", m))?;
-    let solved = image.as_ref();
+    let bc = p.boundary.resolve(image.grid.periodic, &FFT_BOUNDARIES)?;
+    if let Some(w) = bc.warning() {
+        ctx.warn(&w);
+    }
+    let (mirrored, subvoxel) = mirrored_cell(&bc, image.as_ref(), subvoxel, ctx);
+    let solved = mirrored.as_ref().unwrap_or(image.as_ref());
     let mats = resolve(
         "materials",
         &p.materials,
@@ -366,7 +373,49 @@ pub fn solve_image<'a>(
             Err(f) => return Err(f.error),
         },
     };
+    let result = match mirrored {
+        Some(cell) => on_input_grid(result, &cell.grid, &image.grid, bc.voxel_factor()),
+        None => result,
+    };
     Ok((image, result))
+}
+
+/// With `boundary: mirror`, the image (and its sub-voxel geometry) reflected across its
+/// non-periodic axes: the periodic cell that is solved. `None` when nothing is mirrored.
+pub fn mirrored_cell(
+    bc: &ResolvedBoundary,
+    image: &PhaseImage,
+    subvoxel: Option<grainpipe_core::subvoxel::Subvoxel>,
+    ctx: &RunContext,
+) -> (
+    Option<PhaseImage>,
+    Option<grainpipe_core::subvoxel::Subvoxel>,
+) {
+    if bc.voxel_factor() == 1 {
+        return (None, subvoxel);
+    }
+    let cell = mirror_image(image, bc.mirror);
+    let [x, y, z] = cell.grid.dims;
+    ctx.info(&format!(
+        "boundary: mirror: the image reflected across {} ({x}x{y}x{z} voxels)",
+        grainpipe_core::boundary::axis_list(bc.mirror)
+    ));
+    let sv = subvoxel.map(|sv| mirror_subvoxel(&sv, image.grid.dims, bc.mirror));
+    (Some(cell), sv)
+}
+
+/// The mirrored cell's result on the input's grid: the fields cropped to the input's voxels
+/// (the cell's first octant is the input), the phase voxel counts divided by the number of
+/// copies (each phase appears `copies` times), the stiffness and histories unchanged.
+fn on_input_grid(mut r: ElasticResult, cell: &Grid, input: &Grid, copies: u64) -> ElasticResult {
+    for x in r.phase_stress.iter_mut() {
+        x.2 /= copies;
+    }
+    for (_, e, s) in r.fields.iter_mut() {
+        *e = crop_lower(e, 6, cell.dims, input.dims);
+        *s = crop_lower(s, 6, cell.dims, input.dims);
+    }
+    r
 }
 
 /// Everything the load cases give.

@@ -9,6 +9,7 @@ pub mod minres;
 pub mod multigrid;
 pub mod permeability;
 pub mod solver;
+pub mod walls;
 
 /// Adds this crate's stages.
 pub fn register(r: &mut grainpipe_core::Registry) {

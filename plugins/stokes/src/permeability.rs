@@ -1,12 +1,14 @@
 //! `stokes.permeability`: apparent permeability tensor of a periodic voxel pore space
 //! (Donval et al. 2025, section 3.3, eq. 3.6-3.8).
 
-use crate::mac::Dims;
+use crate::mac::{Dims, Percolation};
 use crate::multigrid::CycleSettings;
 use crate::solver::{
     permeability, permeability_composite, symmetry_error, SolveError, SolverSettings,
     BYTES_PER_VOXEL, FIELD_BYTES_PER_VOXEL, LABEL_BYTES_PER_VOXEL,
 };
+use crate::walls::{WallsLayout, MIN_BUFFER};
+use grainpipe_core::boundary::{crop_lower, mirror, Boundary, BoundaryParams, ResolvedBoundary};
 use grainpipe_core::subvoxel::{InterfaceParams, Interfaces};
 use grainpipe_core::units::{Pressure, Viscosity, Q};
 use grainpipe_core::{
@@ -78,9 +80,20 @@ pub struct PermeabilityParams {
     /// rule of Gibou et al. 2002; see docs/stages/stokes.md).
     #[param(flatten)]
     pub interface: InterfaceParams,
+    #[param(flatten)]
+    pub boundary: BoundaryParams,
+    /// With `boundary: walls` along a non-periodic flow axis: fluid layers (the inlet and
+    /// outlet reservoirs, joined through the periodic wrap) between the outlet and the
+    /// inlet face, in voxels; the face pressures are extrapolated from the two layers next
+    /// to each face.
+    #[param(default = 6, ty = "integer 2..1000")]
+    pub buffer_voxels: usize,
 }
 
 pub struct PermeabilityStage;
+
+/// Every boundary: the permeameter is a flow boundary.
+const BOUNDARIES: [Boundary; 3] = [Boundary::Periodic, Boundary::Mirror, Boundary::Walls];
 
 /// One darcy [m^2].
 pub const DARCY: f64 = 9.869_233e-13;
@@ -156,7 +169,33 @@ fn check_params(p: &PermeabilityParams) -> Result<(), StageError> {
     if !(p.over_correction >= 1.0 && p.over_correction <= 2.0) {
         return Err(StageError::param("over_correction", "must be in [1, 2]"));
     }
+    if !(MIN_BUFFER..=1000).contains(&p.buffer_voxels) {
+        return Err(StageError::param(
+            "buffer_voxels",
+            format!(
+                "must be in {MIN_BUFFER}..1000 (each face pressure is extrapolated from two \
+                 buffer layers), got {}",
+                p.buffer_voxels
+            ),
+        ));
+    }
     Ok(())
+}
+
+/// Voxels of the largest cell solved: the image, mirrored or padded for the permeameter.
+fn solved_voxels(p: &PermeabilityParams, bc: &ResolvedBoundary, grid: &Grid) -> u64 {
+    match bc.boundary {
+        Boundary::Walls => p
+            .directions
+            .iter()
+            .map(|a| {
+                WallsLayout::new(grid.dims, grid.periodic, a.index(), p.buffer_voxels).padded_len()
+                    as u64
+            })
+            .max()
+            .unwrap_or(0),
+        _ => bc.solved_grid(grid).voxel_count() as u64,
+    }
 }
 
 fn check_grid(grid: &Grid) -> Result<(), StageError> {
@@ -189,7 +228,7 @@ impl TypedStage for PermeabilityStage {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "stokes.permeability",
-            "1.2.0",
+            "1.3.0",
             "Apparent permeability tensor of a periodic voxel pore space (Donval et al. 2025, \
              section 3.3, eq. 3.6-3.8): for a body force f along each load direction, the \
              periodic Stokes flow mu Lap u - grad p = -f, div u = 0 with u = 0 on the solid is \
@@ -210,13 +249,16 @@ impl TypedStage for PermeabilityStage {
              diagonal (symmetric rule of Gibou et al. 2002) and the body force is weighted by \
              the dual-cell extent, the system staying symmetric. Memory: about 117 bytes per \
              voxel (142 with composite walls; f32 vectors); the stage refuses an image that \
-             does not fit.",
+             does not fit. An image that is not periodic (a scan) needs a boundary: walls (the \
+             permeameter: no-slip walls beside the flow, inlet and outlet buffer layers, kappa \
+             from the flow rate and the pressure drop between the faces), mirror (the image \
+             reflected across its non-periodic axes) or periodic (faces glued, warned).",
         )
         .inputs(vec![
             PortSpec::new(
                 "image",
                 ArtifactKind::PhaseImage,
-                "phase image with cubic voxels, treated as periodic; `fluid` labels are pore",
+                "phase image with cubic voxels, periodic or with `boundary:`; `fluid` labels are pore",
             ),
             PortSpec::optional(
                 "subvoxel",
@@ -252,7 +294,7 @@ impl TypedStage for PermeabilityStage {
             PortSpec::optional(
                 "pressure",
                 ArtifactKind::Field,
-                "with fields: true, the periodic pressure (Pa) of the first direction",
+                "with fields: true, the periodic pressure (Pa) of the first direction (walls: the total pressure, relative to the outlet face)",
             ),
         ])
     }
@@ -267,13 +309,21 @@ impl TypedStage for PermeabilityStage {
         check_grid(&fine)?;
         // The grid solved on (coarsened or not), the sub-voxel settings checked.
         let grid = p.interface.check(inputs.get("subvoxel"), &fine)?;
-        let n = grid.voxel_count() as f64;
+        let bc = p.boundary.resolve(grid.periodic, &BOUNDARIES)?;
+        let n = solved_voxels(p, &bc, &grid) as f64;
         let composite = p.interface.interfaces == Interfaces::Composite;
-        let bpv = bytes_per_voxel(p.fields, composite);
-        // Coarsening holds the fine image while the coarse one and its fractions are built.
+        // The permeameter keeps each direction's solution to read its faces.
+        let bpv = bytes_per_voxel(p.fields || bc.boundary == Boundary::Walls, composite);
+        // Coarsening holds the fine image while the coarse one and its fractions are built;
+        // the mirrored or padded pore space (4 bytes a voxel) is built beside the image's.
         let bytes = bpv * n
             + if p.interface.coarsen > 1 {
                 fine.voxel_count() as f64
+            } else {
+                0.0
+            }
+            + if n > grid.voxel_count() as f64 {
+                4.0 * n
             } else {
                 0.0
             };
@@ -390,14 +440,20 @@ impl TypedStage for PermeabilityStage {
         };
         let image = image.as_ref();
         let grid = &image.grid;
-        if !grid.periodic.iter().all(|&b| b) {
-            ctx.warn(&format!(
-                "the image is periodic along {:?} only; the cell problem treats it as periodic \
-                 along every axis",
-                grid.periodic
-            ));
+        let bc = p.boundary.resolve(grid.periodic, &BOUNDARIES)?;
+        if let Some(w) = bc.warning() {
+            ctx.warn(&w);
         }
-        let dims = Dims::new(grid.dims);
+        let pore = match fraction {
+            Some(f) => PoreSpace::Fractions(f),
+            None => {
+                let mut lut = [false; 256];
+                for &l in &p.fluid {
+                    lut[l as usize] = true;
+                }
+                PoreSpace::Labels(image.labels.iter().map(|&l| lut[l as usize]).collect())
+            }
+        };
         let axes: Vec<usize> = p.directions.iter().map(|a| a.index()).collect();
         let settings = SolverSettings {
             tolerance: p.tolerance,
@@ -409,39 +465,44 @@ impl TypedStage for PermeabilityStage {
         };
         let total = (axes.len() * p.max_iterations as usize) as u64;
         let maxit = p.max_iterations as u64;
-        let keep = if p.fields { Some(axes[0]) } else { None };
         // Cases may run out of order (the one whose fields are kept runs last): count them.
         let mut seen: (Option<usize>, u64) = (None, 0);
-        let monitor = |case: usize, it: usize, _: f64| {
+        let mut monitor = |case: usize, it: usize, _: f64| {
             if seen.0 != Some(case) {
                 seen = (Some(case), seen.1 + 1);
             }
             ctx.progress((seen.1 - 1) * maxit + it as u64, total)
         };
-        let result = match &fraction {
-            Some(f) => permeability_composite(dims, f, &axes, settings, keep, monitor)?,
-            None => {
-                let mut lut = [false; 256];
-                for &l in &p.fluid {
-                    lut[l as usize] = true;
-                }
-                let is_fluid: Vec<bool> = image.labels.iter().map(|&l| lut[l as usize]).collect();
-                permeability(dims, is_fluid, &axes, settings, keep, monitor)?
-            }
+        let flow = match bc.boundary {
+            Boundary::Walls => solve_walls(
+                &pore,
+                grid,
+                &axes,
+                p.buffer_voxels,
+                settings,
+                p.fields,
+                ctx,
+                &mut monitor,
+            )?,
+            _ => solve_cell(
+                pore,
+                grid,
+                &bc,
+                &axes,
+                settings,
+                p.fields,
+                ctx,
+                &mut monitor,
+            )?,
         };
-        drop(fraction);
-        let res = result.map_err(|e| match e {
-            SolveError::NoSolid => StageError::input("image", e.to_string()),
-            _ => StageError::failed(e.to_string()),
-        })?;
         let h = grid.spacing[0];
         let extent = grid.extent();
         let mu = p.viscosity.si();
         // kappa in voxel units times h^2 (eq. (3.8) with mu = f = h = 1).
         let mut tensor = [[f64::NAN; 3]; 3];
-        for c in &res.cases {
+        for c in &flow.cases {
             for (i, row) in tensor.iter_mut().enumerate() {
-                row[c.axis] = res.kappa[i][c.axis] * h * h;
+                row[c.axis] = flow.kappa[i][c.axis] * h * h;
             }
         }
         let sym = if axes.len() == 3 {
@@ -456,8 +517,9 @@ impl TypedStage for PermeabilityStage {
         let (mut k_si, mut k_d, mut u_darcy, mut u_pore) = (vec![], vec![], vec![], vec![]);
         let (mut iters, mut resid, mut true_res, mut mass, mut perc, mut notes) =
             (vec![], vec![], vec![], vec![], vec![], vec![]);
+        let (mut flow_rate, mut imbalance) = (vec![], vec![]);
         let (mut h_dir, mut h_it, mut h_res) = (vec![], vec![], vec![]);
-        for c in &res.cases {
+        for (ci, c) in flow.cases.iter().enumerate() {
             let a = c.axis;
             let kappa = tensor[a][a];
             // eq. (3.8): <u>_Y = kappa f / mu with f = pressure drop / cell length.
@@ -467,8 +529,11 @@ impl TypedStage for PermeabilityStage {
             k_si.push(kappa);
             k_d.push(kappa / DARCY);
             u_darcy.push(ud);
-            u_pore.push(if res.connected_porosity > 0.0 {
-                ud / res.connected_porosity
+            // Through the sample's cross-section (the cell's, for periodic and mirror).
+            flow_rate.push(ud * extent[(a + 1) % 3] * extent[(a + 2) % 3]);
+            imbalance.push(flow.permeameter[ci].map_or(f64::NAN, |m| m.imbalance));
+            u_pore.push(if flow.connected_porosity > 0.0 {
+                ud / flow.connected_porosity
             } else {
                 0.0
             });
@@ -476,7 +541,7 @@ impl TypedStage for PermeabilityStage {
             resid.push(c.residual);
             true_res.push(c.true_residual);
             mass.push(c.mass_error);
-            perc.push(i64::from(res.percolation.percolates[a]));
+            perc.push(i64::from(flow.percolation.percolates[a]));
             notes.push(c.note.clone().unwrap_or_default());
             if let Some(n) = &c.note {
                 ctx.warn(n);
@@ -488,20 +553,24 @@ impl TypedStage for PermeabilityStage {
             }
             ctx.info(&format!(
                 "{}: kappa = {kappa:.4e} m^2 ({:.4} darcy) in {} iterations, residual {:.2e}, \
-                 mass error {:.2e}",
+                 mass error {:.2e}{}",
                 ["x", "y", "z"][a],
                 kappa / DARCY,
                 c.iterations,
                 c.true_residual,
-                c.mass_error
+                c.mass_error,
+                flow.permeameter[ci].map_or(String::new(), |m| format!(
+                    ", permeameter: inlet/outlet flow rates differ by {:.2e}",
+                    m.imbalance
+                ))
             ));
         }
-        if res.percolation.isolated > 0 {
+        if flow.percolation.isolated > 0 {
             ctx.info(&format!(
                 "{} of {} fluid voxels lie in pore components that do not percolate and were \
                  excluded",
-                res.percolation.isolated,
-                res.percolation.isolated + res.percolation.kept
+                flow.percolation.isolated,
+                flow.percolation.isolated + flow.percolation.kept
             ));
         }
         let ncase = names.len();
@@ -511,15 +580,17 @@ impl TypedStage for PermeabilityStage {
             .with_f64("kappa_darcy", "D", k_d)
             .with_f64("darcy_velocity", "m/s", u_darcy)
             .with_f64("pore_velocity", "m/s", u_pore)
+            .with_f64("flow_rate", "m^3/s", flow_rate)
+            .with_f64("mass_balance", "1", imbalance)
             .with_i64("iterations", "1", iters)
             .with_f64("residual", "1", resid)
             .with_f64("true_residual", "1", true_res)
             .with_f64("mass_error", "1", mass)
-            .with_f64("porosity", "1", vec![res.porosity; ncase])
+            .with_f64("porosity", "1", vec![flow.porosity; ncase])
             .with_f64(
                 "connected_porosity",
                 "1",
-                vec![res.connected_porosity; ncase],
+                vec![flow.connected_porosity; ncase],
             )
             .with_i64("percolates", "1", perc)
             .with_f64("symmetry_error", "1", vec![sym; ncase])
@@ -542,15 +613,13 @@ impl TypedStage for PermeabilityStage {
         );
         out.insert("report".into(), Artifact::Table(report));
         out.insert("history".into(), Artifact::Table(history));
-        if p.fields {
-            let a = axes[0];
-            let f = p.pressure_drop.si() / extent[a];
-            let n = dims.len();
-            let (vel, pre) = match res.cases.iter().find_map(|c| c.solution.as_ref()) {
-                Some(x) => voxel_fields(dims, x, f * h * h / mu, f * h),
-                // A direction that was not solved has no flow.
-                None => (vec![0f32; 3 * n], vec![0f32; n]),
-            };
+        if let Some(fields) = &flow.fields {
+            // Voxel units to SI: the body force f that gives the sample `pressure_drop`
+            // (u scales with f h^2 / mu, p with f h).
+            let f = p.pressure_drop.si() / (h * fields.pressure_drop);
+            let (us, ps) = ((f * h * h / mu) as f32, (f * h) as f32);
+            let vel = fields.velocity.iter().map(|v| v * us).collect();
+            let pre = fields.pressure.iter().map(|v| v * ps).collect();
             let field = |name: &str, unit: &str, conv, data| {
                 Field::new(grid.clone(), name, unit, conv, FieldData::F32(data))
                     .map_err(StageError::failed)
@@ -584,4 +653,242 @@ fn voxel_fields(dims: Dims, x: &[f32], u_scale: f64, p_scale: f64) -> (Vec<f32>,
     });
     let pre = x[3 * n..].par_iter().map(|&v| v * ps).collect();
     (vel, pre)
+}
+
+/// The pore space solved: the fluid labels or the sub-voxel fluid fractions, one value per
+/// voxel.
+enum PoreSpace {
+    Labels(Vec<bool>),
+    Fractions(Vec<f32>),
+}
+
+impl PoreSpace {
+    fn porosity(&self) -> f64 {
+        match self {
+            PoreSpace::Labels(f) => f.iter().filter(|&&x| x).count() as f64 / f.len() as f64,
+            PoreSpace::Fractions(f) => f.iter().map(|&x| x as f64).sum::<f64>() / f.len() as f64,
+        }
+    }
+
+    fn mirrored(&self, dims: [usize; 3], axes: [bool; 3]) -> PoreSpace {
+        match self {
+            PoreSpace::Labels(f) => PoreSpace::Labels(mirror(f, 1, dims, axes)),
+            PoreSpace::Fractions(f) => PoreSpace::Fractions(mirror(f, 1, dims, axes)),
+        }
+    }
+
+    fn padded(&self, layout: &WallsLayout) -> PoreSpace {
+        match self {
+            PoreSpace::Labels(f) => PoreSpace::Labels(layout.pad(f, false, true)),
+            PoreSpace::Fractions(f) => PoreSpace::Fractions(layout.pad(f, 0.0, 1.0)),
+        }
+    }
+
+    fn solve<M>(
+        self,
+        dims: [usize; 3],
+        axes: &[usize],
+        settings: SolverSettings,
+        keep: Option<usize>,
+        monitor: M,
+    ) -> Result<crate::solver::Permeability, StageError>
+    where
+        M: FnMut(usize, usize, f64) -> Result<(), StageError>,
+    {
+        let d = Dims::new(dims);
+        let r = match self {
+            PoreSpace::Labels(f) => permeability(d, f, axes, settings, keep, monitor)?,
+            PoreSpace::Fractions(f) => {
+                permeability_composite(d, &f, axes, settings, keep, monitor)?
+            }
+        };
+        r.map_err(|e| match e {
+            SolveError::NoSolid => StageError::input("image", e.to_string()),
+            _ => StageError::failed(e.to_string()),
+        })
+    }
+}
+
+/// The flow solved, in voxel units (h = mu = 1), on the image's grid.
+struct Flow {
+    percolation: Percolation,
+    /// kappa / h^2 (columns of directions not solved, and the permeameter's off-diagonal
+    /// entries, are NaN).
+    kappa: [[f64; 3]; 3],
+    cases: Vec<crate::solver::LoadCase>,
+    porosity: f64,
+    connected_porosity: f64,
+    /// The permeameter's reading per case (`boundary: walls`).
+    permeameter: Vec<Option<crate::walls::Permeameter>>,
+    fields: Option<VoxelFields>,
+}
+
+/// Voxel-centred velocity and pressure of the first direction on the image's grid, in voxel
+/// units, with the pressure drop across the sample they belong to.
+struct VoxelFields {
+    velocity: Vec<f32>,
+    pressure: Vec<f32>,
+    pressure_drop: f64,
+}
+
+/// The periodic cell problem on the image (`periodic`) or on its mirrored cell (`mirror`).
+#[allow(clippy::too_many_arguments)]
+fn solve_cell<M>(
+    pore: PoreSpace,
+    grid: &Grid,
+    bc: &ResolvedBoundary,
+    axes: &[usize],
+    settings: SolverSettings,
+    fields: bool,
+    ctx: &RunContext,
+    monitor: M,
+) -> Result<Flow, StageError>
+where
+    M: FnMut(usize, usize, f64) -> Result<(), StageError>,
+{
+    let dims = grid.dims;
+    let (pore, cell) = if bc.voxel_factor() > 1 {
+        let cell = grainpipe_core::boundary::mirrored_dims(dims, bc.mirror);
+        ctx.info(&format!(
+            "boundary: mirror: the pore space reflected across {} ({}x{}x{} voxels)",
+            grainpipe_core::boundary::axis_list(bc.mirror),
+            cell[0],
+            cell[1],
+            cell[2]
+        ));
+        (pore.mirrored(dims, bc.mirror), cell)
+    } else {
+        (pore, dims)
+    };
+    let keep = fields.then(|| axes[0]);
+    let mut res = pore.solve(cell, axes, settings, keep, monitor)?;
+    let fields = fields.then(|| {
+        let d = Dims::new(cell);
+        let (velocity, pressure) = match res.cases.iter_mut().find_map(|c| c.solution.take()) {
+            Some(x) => voxel_fields(d, &x, 1.0, 1.0),
+            // A direction that was not solved has no flow.
+            None => (vec![0f32; 3 * d.len()], vec![0f32; d.len()]),
+        };
+        VoxelFields {
+            velocity: crop_lower(&velocity, 3, cell, dims),
+            pressure: crop_lower(&pressure, 1, cell, dims),
+            // A unit body force: the drop along the sample is its length.
+            pressure_drop: dims[axes[0]] as f64,
+        }
+    });
+    Ok(Flow {
+        permeameter: vec![None; res.cases.len()],
+        percolation: res.percolation,
+        kappa: res.kappa,
+        cases: res.cases,
+        porosity: res.porosity,
+        connected_porosity: res.connected_porosity,
+        fields,
+    })
+}
+
+/// The permeameter (`walls`): each direction solved on its own padded cell
+/// ([`WallsLayout`]) and read at the sample's inlet and outlet faces.
+#[allow(clippy::too_many_arguments)]
+fn solve_walls<M>(
+    pore: &PoreSpace,
+    grid: &Grid,
+    axes: &[usize],
+    buffer: usize,
+    settings: SolverSettings,
+    fields: bool,
+    ctx: &RunContext,
+    mut monitor: M,
+) -> Result<Flow, StageError>
+where
+    M: FnMut(usize, usize, f64) -> Result<(), StageError>,
+{
+    let dims = grid.dims;
+    let n = dims.iter().product::<usize>() as f64;
+    let mut kappa = [[f64::NAN; 3]; 3];
+    let (mut cases, mut meters) = (vec![], vec![]);
+    let mut percolation: Option<Percolation> = None;
+    let mut percolates = [false; 3];
+    let mut out_fields = None;
+    for (k, &a) in axes.iter().enumerate() {
+        let layout = WallsLayout::new(dims, grid.periodic, a, buffer);
+        if k == 0 {
+            ctx.info(&format!(
+                "boundary: walls: no-slip walls across {}{}",
+                match grainpipe_core::boundary::axis_list(layout.walls) {
+                    w if w.is_empty() => "no axis".to_string(),
+                    w => w,
+                },
+                if layout.buffer > 0 {
+                    format!(", {} buffer layers along the flow", layout.buffer)
+                } else {
+                    String::new()
+                }
+            ));
+        }
+        let padded = pore.padded(&layout);
+        let mut res = padded.solve(layout.padded, &[a], settings, Some(a), |_, it, r| {
+            monitor(k, it, r)
+        })?;
+        let mut case = res.cases.remove(0);
+        let meter = case.solution.take().map(|x| {
+            let m = layout.apparent(&x);
+            if fields && k == 0 {
+                out_fields = Some(walls_fields(&layout, &x, &m));
+            }
+            m
+        });
+        kappa[a][a] = meter.map_or(0.0, |m| m.kappa);
+        percolates[a] = res.percolation.percolates[a];
+        // The sample's share of the kept pore space: through a percolating sample the buffer
+        // belongs to the kept component.
+        if percolation
+            .as_ref()
+            .is_none_or(|p| percolates[a] && !p.percolates[a])
+        {
+            let mut p = res.percolation;
+            if percolates[a] {
+                p.kept = p.kept.saturating_sub(layout.buffer_voxels());
+            }
+            percolation = Some(p);
+        }
+        cases.push(case);
+        meters.push(meter);
+    }
+    let mut percolation = percolation.expect("at least one direction");
+    percolation.percolates = percolates;
+    if fields && out_fields.is_none() {
+        // The first direction does not percolate: no flow.
+        out_fields = Some(VoxelFields {
+            velocity: vec![0.0; 3 * n as usize],
+            pressure: vec![0.0; n as usize],
+            pressure_drop: 1.0,
+        });
+    }
+    Ok(Flow {
+        connected_porosity: percolation.kept as f64 / n,
+        percolation,
+        kappa,
+        cases,
+        porosity: pore.porosity(),
+        permeameter: meters,
+        fields: out_fields,
+    })
+}
+
+/// The permeameter's fields on the sample: velocity, and the total pressure P = p - f x
+/// relative to the outlet face (so it reads the pressure drop at the inlet face).
+fn walls_fields(layout: &WallsLayout, x: &[f32], m: &crate::walls::Permeameter) -> VoxelFields {
+    let d = Dims::new(layout.padded);
+    let (velocity, mut pressure) = voxel_fields(d, x, 1.0, 1.0);
+    let a = layout.flow;
+    for (i, p) in pressure.iter_mut().enumerate() {
+        let c = d.coords(i)[a] as f64;
+        *p = (*p as f64 - (c + 0.5) - m.outlet_pressure) as f32;
+    }
+    VoxelFields {
+        velocity: crop_lower(&velocity, 3, layout.padded, layout.sample),
+        pressure: crop_lower(&pressure, 1, layout.padded, layout.sample),
+        pressure_drop: m.pressure_drop,
+    }
 }
