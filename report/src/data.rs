@@ -124,6 +124,9 @@ pub enum Body {
         unit: String,
         convention: String,
         shape: Vec<usize>,
+        /// NaN (a component not computed: a direction not solved, the off-diagonal of a
+        /// permeameter) is written as null and read back as NaN.
+        #[serde(with = "nan_as_null")]
         values: Vec<f64>,
     },
     Series {
@@ -138,6 +141,22 @@ pub enum Body {
         #[serde(default)]
         total: usize,
     },
+}
+
+/// JSON has no NaN: serde_json writes a NaN f64 as null, which does not read back as an
+/// f64. Values that may be NaN go through this: null on the way out, NaN on the way in.
+mod nan_as_null {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    pub fn serialize<S: Serializer>(v: &[f64], s: S) -> Result<S::Ok, S::Error> {
+        let o: Vec<Option<f64>> = v.iter().map(|x| x.is_finite().then_some(*x)).collect();
+        o.serialize(s)
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
+        let o = Vec::<Option<f64>>::deserialize(d)?;
+        Ok(o.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect())
+    }
 }
 
 /// Pictures made while extracting: (file name, PNG bytes).
@@ -523,6 +542,27 @@ pub fn sizes(d: &[f64]) -> Option<Sizes> {
 mod tests {
     use super::*;
     use grainpipe_core::model::{FieldData, Grid};
+
+    /// A tensor with components not computed (NaN) survives the report data's JSON: the
+    /// report of a permeameter or of a subset of load directions is written.
+    #[test]
+    fn nan_components_of_a_tensor_round_trip_through_json() {
+        let body = Body::Tensor {
+            name: "permeability".into(),
+            unit: "m^2".into(),
+            convention: "plain".into(),
+            shape: vec![3],
+            values: vec![1.5e-11, f64::NAN, 0.0],
+        };
+        let text = serde_json::to_string(&body).unwrap();
+        assert!(text.contains("null"), "{text}");
+        let Body::Tensor { values, .. } = serde_json::from_str(&text).unwrap() else {
+            panic!("not a tensor")
+        };
+        assert_eq!(values[0], 1.5e-11);
+        assert!(values[1].is_nan());
+        assert_eq!(values[2], 0.0);
+    }
 
     #[test]
     fn von_mises_of_uniaxial_and_shear_stress() {
