@@ -21,15 +21,14 @@ pub struct CropParams {
 
 /// The grid of the box, checked against the input grid.
 pub fn crop_grid(p: &CropParams, g: &Grid) -> Result<(Grid, [usize; 3]), StageError> {
-    let axes = ["x", "y", "z"];
-    for a in 0..3 {
+    for (a, axis) in ["x", "y", "z"].into_iter().enumerate() {
         if p.start[a] >= g.dims[a] {
             return Err(StageError::param(
                 "start",
                 format!(
                     "start {} along {} is outside the input's {} voxels (0..={})",
                     p.start[a],
-                    axes[a],
+                    axis,
                     g.dims[a],
                     g.dims[a] - 1
                 ),
@@ -43,7 +42,7 @@ pub fn crop_grid(p: &CropParams, g: &Grid) -> Result<(Grid, [usize; 3]), StageEr
             p.size[a]
         }
     });
-    for a in 0..3 {
+    for (a, axis) in ["x", "y", "z"].into_iter().enumerate() {
         if p.start[a] + size[a] > g.dims[a] {
             return Err(StageError::param(
                 "size",
@@ -52,7 +51,7 @@ pub fn crop_grid(p: &CropParams, g: &Grid) -> Result<(Grid, [usize; 3]), StageEr
                      fit (or 0 for the rest of the axis)",
                     size[a],
                     p.start[a],
-                    axes[a],
+                    axis,
                     g.dims[a],
                     g.dims[a] - p.start[a]
                 ),

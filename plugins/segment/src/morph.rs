@@ -87,8 +87,8 @@ fn reassign(
         let counts: HashMap<(u32, u8), u64> = (0..dims[2])
             .into_par_iter()
             .fold(HashMap::new, |mut m: HashMap<(u32, u8), u64>, z| {
-                for i in z * plane..(z + 1) * plane {
-                    let c = ids[i];
+                for (j, &c) in ids[z * plane..(z + 1) * plane].iter().enumerate() {
+                    let i = z * plane + j;
                     if c == NONE || !chosen[c as usize] {
                         continue;
                     }

@@ -204,7 +204,9 @@ impl TypedStage for Threshold {
              picks the threshold maximising the between-class variance over a histogram of \
              `bins` equal bins between the field's smallest and largest finite value; \
              `multi_otsu` (Liao, Chen & Chung 2001) searches every pair of thresholds for \
-             three classes. Automatic thresholds lie on bin edges. The thresholds used are \
+             three classes. Automatic thresholds lie on bin edges; when several score the same \
+             (an empty gap between modes) the lowest is taken, just above the darker \
+             values. The thresholds used are \
              reported in the `classes` table (`lower`, `upper` of each class, in the \
              field's unit; the darkest class starts at the smallest value, the brightest \
              ends at the largest) and in the log. Values that are not finite (NaN) go to the \
