@@ -40,17 +40,18 @@ impl TypedStage for Clean {
         StageInfo::new(
             "segment.clean",
             "1.0.0",
-            "Cleans a segmented image in three steps, each on the result of the one before. \
-             1. Specks: connected components (6-connectivity, periodic axes wrap) of the \
-             `speck_labels` smaller than `min_size` take the label most of their face \
-             neighbours carry (ties to the smallest label). 2. Holes: components of the \
-             `fill_holes` labels that are enclosed (touch neither face of a non-periodic \
-             axis, do not wind around a periodic one; axes of one voxel are ignored) take \
-             the majority label of their face neighbours, i.e. the enclosing phase. 3. \
-             `relabel`: [old, new] pairs. Each of steps 1 and 2 judges every component on \
-             its input, so the result does not depend on the order of the components. A \
-             component without neighbours of another label keeps its label. The `summary` \
-             table counts the components and voxels changed.",
+            "Removes specks, fills holes and relabels a segmented image, in that order, \
+             each step on the result of the one before. Specks: connected components \
+             (6-connectivity, periodic axes wrap) of the `speck_labels` smaller than \
+             `min_size` take the label most of their face neighbours carry (ties to the \
+             smallest label). Holes: components of the `fill_holes` labels that are enclosed \
+             (touch neither face of a non-periodic axis, do not wind around a periodic one; \
+             axes of one voxel are ignored) take the majority label of their face \
+             neighbours, i.e. the enclosing phase. Then `relabel` applies its [old, new] \
+             pairs. The speck and hole steps judge every component on their input, so the \
+             result does not depend on the order of the components; a component without \
+             neighbours of another label keeps its label. The `summary` table counts the \
+             components and voxels changed.",
         )
         .inputs(vec![PortSpec::new(
             "image",

@@ -79,9 +79,9 @@ impl TypedStage for Crop {
         StageInfo::new(
             "segment.crop",
             "1.0.0",
-            "Cuts the box of voxels `start .. start + size` (voxel indices of the input, x, \
-             y, z) out of a phase image (`image`) or a field (`field`, any components); the \
-             output has the same spacing and its lower corner at the box's corner (origin + \
+            "Cuts a box of voxels out of a phase image or a field. The box is `start .. \
+             start + size` (voxel indices of the input, x, y, z), of a phase image (`image`) \
+             or a field (`field`, any components); the output has the same spacing and its lower corner at the box's corner (origin + \
              start x spacing), so it stays in place in physical space. An axis that is cut \
              is no longer periodic; an axis kept whole keeps its periodicity. Connect one \
              input; the output of the same name is produced.",

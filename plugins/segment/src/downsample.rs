@@ -68,7 +68,7 @@ impl TypedStage for Downsample {
         StageInfo::new(
             "segment.downsample",
             "1.0.0",
-            "Coarsens a phase image (`image`) or a field (`field`) by an integer factor: each \
+            "Coarsens a phase image (`image`) or a field (`field`) by an integer factor. Each \
              block of factor x factor x factor voxels becomes one voxel of factor times the \
              spacing, with the same lower corner and periodic axes. A phase image takes the \
              block's most frequent label (ties to the smallest label); a field the mean of \

@@ -65,9 +65,9 @@ impl TypedStage for Filter {
         StageInfo::new(
             "segment.filter",
             "1.0.0",
-            "Smooths a scalar grey-value field before thresholding. `median`: the median of \
-             the cubic or ball-shaped window of `radius` voxels around each voxel (the window \
-             holds an odd number of voxels, so the median is one of the values). `gaussian`: \
+            "Smooths a scalar grey-value field before thresholding, by a median or a \
+             Gaussian filter. Median: the median of the cubic or ball-shaped window of `radius` voxels around each voxel (the window \
+             holds an odd number of voxels, so the median is one of the values). Gaussian: \
              a separable Gaussian (one 1-D pass along x, y, then z) of standard deviation \
              `sigma` in voxels or as a length, truncated at ceil(truncate x sigma) voxels and \
              renormalised. Boundaries: a periodic axis wraps; a non-periodic axis is \

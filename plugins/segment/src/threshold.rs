@@ -198,12 +198,13 @@ impl TypedStage for Threshold {
         StageInfo::new(
             "segment.threshold",
             "1.0.0",
-            "Segments a scalar grey-value field into classes by thresholds: a voxel of \
-             value v gets class k = the number of thresholds <= v, labelled and named by \
+            "Segments a scalar grey-value field into phases by thresholds, given or found \
+             on its histogram (Otsu 1979; Liao, Chen & Chung 2001). A voxel of value v gets \
+             class k = the number of thresholds <= v, labelled and named by \
              `labels` / `names`. `manual` takes the thresholds given; `otsu` (Otsu 1979) \
              picks the threshold maximising the between-class variance over a histogram of \
              `bins` equal bins between the field's smallest and largest finite value; \
-             `multi_otsu` (Liao, Chen & Chung 2001) searches every pair of thresholds for \
+             `multi_otsu` searches every pair of thresholds for \
              three classes. Automatic thresholds lie on bin edges; when several score the same \
              (an empty gap between modes) the lowest is taken, just above the darker \
              values. The thresholds used are \
