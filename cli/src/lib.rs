@@ -27,6 +27,7 @@ pub fn builtin_registry() -> Registry {
     grainpipe_stokes::register(&mut r);
     grainpipe_cemented::register(&mut r);
     grainpipe_peridynamics::register(&mut r);
+    grainpipe_segment::register(&mut r);
     grainpipe_report::register(&mut r);
     r
 }
