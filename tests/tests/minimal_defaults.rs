@@ -108,6 +108,22 @@ fn producer(stage: &str, port: &str, kind: ArtifactKind, files: &Path) -> (Strin
             ),
             "up_labels.image".into(),
         ),
+        // Downsampling needs dims its factor (default 2) divides: the 24^3 label volume.
+        ("segment.downsample", "image") => (
+            format!(
+                "  - id: up_labels\n    use: import.raw\n    with: {{ path: {f}/labels.raw, \
+                 dims: [24, 24, 24], spacing: 4 um }}\n"
+            ),
+            "up_labels.image".into(),
+        ),
+        // A grey-value volume: the label volume read as a field (a scan before segmentation).
+        (_, "field") if kind == ArtifactKind::Field => (
+            format!(
+                "  - id: up_scan\n    use: import.raw\n    with: {{ path: {f}/labels.raw, \
+                 dims: [24, 24, 24], spacing: 4 um, as: field }}\n"
+            ),
+            "up_scan.field".into(),
+        ),
         // The contacts must be those of the packing it heats: both from one brick.
         ("sintering.laser", "packing") => (BRICKS.into(), "up_bricks.packing".into()),
         // Analyses the report table of a small packing.
@@ -130,6 +146,8 @@ fn needed_optional_inputs(stage: &str) -> &'static [&'static str] {
     match stage {
         "grains.from_labels" => &["labels"],
         "analysis.ensemble" => &["table"],
+        // One of image / field; the image is the common case.
+        "segment.crop" | "segment.downsample" => &["image"],
         _ => &[],
     }
 }
