@@ -833,7 +833,7 @@ where
         })?;
         let mut case = res.cases.remove(0);
         let meter = case.solution.take().map(|x| {
-            let m = layout.apparent(&x);
+            let m = layout.apparent(&x, res.kappa[a][a]);
             if fields && k == 0 {
                 out_fields = Some(walls_fields(&layout, &x, &m));
             }
