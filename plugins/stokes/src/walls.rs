@@ -13,8 +13,8 @@
 //! The padded cell is solved by the periodic solver under a uniform body force. The driving
 //! pressure is the total pressure P = p - f x (`p` the periodic pressure of the solve, eq.
 //! (3.6) with the body force as a potential); the apparent permeability is Darcy's law over
-//! the sample, kappa = mu Q L / (A dP), with Q the flow rate through the inlet and outlet
-//! faces, A the sample's cross-section, L its length and dP the drop of the cross-section
+//! the sample, kappa = mu Q L / (A dP), with Q the flow rate (the same through every
+//! section; from the solver's cell mean, so with its quadrature), A the sample's cross-section, L its length and dP the drop of the cross-section
 //! mean of P between the inlet and outlet faces, each extrapolated linearly from the two
 //! buffer layers next to the face (exact for the developed flow of a duct, whose pressure
 //! is linear). Along a periodic flow axis there is no buffer: dP = f L and kappa = mu Q / A.
@@ -191,7 +191,8 @@ impl WallsLayout {
 pub struct Permeameter {
     /// Apparent permeability / h^2 along the flow.
     pub kappa: f64,
-    /// Mean of the flow rates through the inlet and outlet faces.
+    /// Flow rate through the sample: the cell mean of the velocity times the cell's
+    /// cross-section.
     pub flow_rate: f64,
     /// Drop of the total pressure from the inlet to the outlet face.
     pub pressure_drop: f64,
