@@ -618,3 +618,27 @@ fn preflight_names_the_parameter() {
         assert!(all.contains(want), "no `{want}` in {all}");
     }
 }
+
+#[test]
+fn kernels_give_the_same_results_on_1_and_3_threads() {
+    let pore = boolean_pores(7, 40, 3.0, 400);
+    let d = [40; 3];
+    let run = || {
+        let t = local_thickness(&pore, d, [1.0, 1.1, 0.9], [true, false, true]);
+        let s: Vec<_> = (0..3)
+            .map(|a| pair_counts(&pore, d, a, a != 1, 20))
+            .collect();
+        let c: Vec<_> = (0..3).map(|a| chord_counts(&pore, d, a, a != 1)).collect();
+        let g = tortuosity(&pore, d, [1.0; 3], [true, false, true], 2);
+        (t, s, c, g)
+    };
+    let pool = |n| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(n)
+            .build()
+            .unwrap()
+    };
+    let one = pool(1).install(run);
+    let three = pool(3).install(run);
+    assert!(one.0 == three.0 && one.1 == three.1 && one.2 == three.2 && one.3 == three.3);
+}
