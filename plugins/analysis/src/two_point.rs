@@ -9,6 +9,10 @@
 //! plane (x, y) or row (z) are summed, transformed back once and rounded to the integer pair
 //! counts, which are summed over planes as integers: exact, and independent of the thread
 //! count. S2(k) = pairs in the phase / pairs.
+//!
+//! The radial average ([`radial_counts`]) is the same on the whole grid: one 3-D FFT
+//! autocorrelation (zero-padded along non-periodic axes), its integer counts summed over the
+//! displacements of each shell and divided by the pairs those displacements have.
 
 use crate::pores::{announced_voxels, check_axes, Axis, PhaseSelection};
 use grainpipe_core::units::{Length, Q};
@@ -98,6 +102,163 @@ pub fn pair_counts(
         .collect()
 }
 
+/// FFT length along an axis of `n` voxels: `n` when periodic, else at least 2n - 1 (so the
+/// circular correlation holds the open one).
+fn fft_len(n: usize, periodic: bool) -> usize {
+    if periodic {
+        n
+    } else {
+        (2 * n - 1).next_power_of_two().max(2)
+    }
+}
+
+/// In place, the 3-D FFT (forward or inverse) of `buf` on a grid of `m` points (x fastest).
+fn fft3(buf: &mut [Complex<f64>], m: [usize; 3], inverse: bool) {
+    let mut planner = FftPlanner::<f64>::new();
+    let plans: Vec<_> = (0..3)
+        .map(|a| {
+            if inverse {
+                planner.plan_fft_inverse(m[a])
+            } else {
+                planner.plan_fft_forward(m[a])
+            }
+        })
+        .collect();
+    let [mx, my, mz] = m;
+    // x: contiguous lines.
+    buf.par_chunks_mut(mx * my)
+        .for_each(|plane| plans[0].process(plane));
+    // y: per z plane, the columns gathered into one batch.
+    buf.par_chunks_mut(mx * my).for_each_init(
+        || vec![Complex::default(); mx * my],
+        |t, plane| {
+            for y in 0..my {
+                for x in 0..mx {
+                    t[x * my + y] = plane[x + mx * y];
+                }
+            }
+            plans[1].process(t);
+            for y in 0..my {
+                for x in 0..mx {
+                    plane[x + mx * y] = t[x * my + y];
+                }
+            }
+        },
+    );
+    // z: per y row, the lines gathered from the shared buffer, transformed, then put back.
+    let rows: Vec<Vec<Complex<f64>>> = (0..my)
+        .into_par_iter()
+        .map(|y| {
+            let mut t = vec![Complex::default(); mx * mz];
+            for z in 0..mz {
+                for x in 0..mx {
+                    t[x * mz + z] = buf[x + mx * (y + my * z)];
+                }
+            }
+            plans[2].process(&mut t);
+            t
+        })
+        .collect();
+    for (y, t) in rows.iter().enumerate() {
+        for z in 0..mz {
+            for x in 0..mx {
+                buf[x + mx * (y + my * z)] = t[x * mz + z];
+            }
+        }
+    }
+}
+
+/// Radially averaged pair counts of the phase: for shells k = 0..=`shells` of displacements
+/// d (any direction) with |d| / `width` rounded to k, (pairs with both voxels in the phase,
+/// all pairs inside the image). By the 3-D FFT autocorrelation, zero-padded along
+/// non-periodic axes (where a displacement d fits n_a - |d_a| times); exact integer counts.
+pub fn radial_counts(
+    mask: &[bool],
+    dims: [usize; 3],
+    spacing: [f64; 3],
+    periodic: [bool; 3],
+    width: f64,
+    shells: usize,
+) -> Vec<(u64, u64)> {
+    assert_eq!(mask.len(), dims.iter().product::<usize>());
+    let m: [usize; 3] = [0, 1, 2].map(|a| fft_len(dims[a], periodic[a]));
+    let total = m[0] * m[1] * m[2];
+    let mut buf = vec![Complex::<f64>::default(); total];
+    let [nx, ny, _] = dims;
+    buf.par_chunks_mut(m[0] * m[1])
+        .enumerate()
+        .filter(|(z, _)| *z < dims[2])
+        .for_each(|(z, plane)| {
+            for y in 0..ny {
+                for x in 0..nx {
+                    if mask[x + nx * (y + ny * z)] {
+                        plane[x + m[0] * y].re = 1.0;
+                    }
+                }
+            }
+        });
+    fft3(&mut buf, m, false);
+    buf.par_iter_mut()
+        .for_each(|c| *c = Complex::new(c.norm_sqr(), 0.0));
+    fft3(&mut buf, m, true);
+    // Displacement of FFT index j along axis a (None: not a displacement inside the image),
+    // and the pairs it has there.
+    let shift = |a: usize, j: usize| -> Option<(i64, u64)> {
+        let (n, ma) = (dims[a] as i64, m[a] as i64);
+        let d = if (j as i64) <= ma / 2 {
+            j as i64
+        } else {
+            j as i64 - ma
+        };
+        if periodic[a] {
+            // Each periodic displacement once: -n/2 < d <= n/2.
+            Some((d, n as u64))
+        } else if d.abs() < n {
+            Some((d, (n - d.abs()) as u64))
+        } else {
+            None
+        }
+    };
+    let per_plane: Vec<Vec<(u64, u64)>> = (0..m[2])
+        .into_par_iter()
+        .map(|kz| {
+            let mut acc = vec![(0u64, 0u64); shells + 1];
+            let Some((dz, pz)) = shift(2, kz) else {
+                return acc;
+            };
+            for ky in 0..m[1] {
+                let Some((dy, py)) = shift(1, ky) else {
+                    continue;
+                };
+                for kx in 0..m[0] {
+                    let Some((dx, px)) = shift(0, kx) else {
+                        continue;
+                    };
+                    let r = ((dx as f64 * spacing[0]).powi(2)
+                        + (dy as f64 * spacing[1]).powi(2)
+                        + (dz as f64 * spacing[2]).powi(2))
+                    .sqrt();
+                    let k = (r / width).round() as usize;
+                    if k > shells {
+                        continue;
+                    }
+                    let c = buf[kx + m[0] * (ky + m[1] * kz)].re / total as f64;
+                    acc[k].0 += c.round().max(0.0) as u64;
+                    acc[k].1 += px * py * pz;
+                }
+            }
+            acc
+        })
+        .collect();
+    (0..=shells)
+        .map(|k| {
+            per_plane
+                .iter()
+                .fold((0, 0), |(a, b), p| (a + p[k].0, b + p[k].1))
+        })
+        .collect()
+}
+
 #[params]
 pub struct TwoPointParams {
     #[param(flatten)]
@@ -108,6 +269,12 @@ pub struct TwoPointParams {
     /// largest lag (default: half the image along each axis; at most the image length
     /// less one voxel on a non-periodic axis, half of it on a periodic one)
     pub max_lag: Option<Q<Length>>,
+    /// also the radial (direction-averaged) S2 from the 3-D autocorrelation, in shells one
+    /// smallest spacing wide up to `max_lag` (default: half the image's shortest side);
+    /// costs 16 bytes per voxel of the zero-padded grid (8 times the image when no axis
+    /// is periodic), twice during the transform
+    #[param(default = false)]
+    pub radial: bool,
 }
 
 pub struct TwoPoint;
@@ -142,11 +309,19 @@ impl TypedStage for TwoPoint {
             ArtifactKind::PhaseImage,
             "any labelled image",
         )])
-        .outputs(vec![PortSpec::new(
-            "s2",
-            ArtifactKind::Table,
-            "one row per axis and lag: axis, lag in voxels and in m, S2, the pairs counted",
-        )])
+        .outputs(vec![
+            PortSpec::new(
+                "s2",
+                ArtifactKind::Table,
+                "one row per axis and lag: axis, lag in voxels and in m, S2, the pairs counted",
+            ),
+            PortSpec::optional(
+                "radial",
+                ArtifactKind::Table,
+                "with radial: true, one row per shell: lag (m, the shell's centre), S2 \
+                 averaged over the directions (pairs-weighted), the pairs counted",
+            ),
+        ])
     }
 
     fn preflight(&self, p: &TwoPointParams, i: &InputMetas) -> Result<Preflight, StageError> {
@@ -203,8 +378,22 @@ impl TypedStage for TwoPoint {
             }
         }
         // The mask (1 byte per voxel); a plane of padded lines per thread (32 bytes per
-        // voxel of a plane) is small beside it.
-        Ok(Preflight::from_info(&self.info(), voxels).announce("s2", table))
+        // voxel of a plane) is small beside it. The radial average: the padded grid as
+        // complex numbers, twice during the z transform.
+        let padded = i
+            .get("image")
+            .and_then(|m| m.grid.as_ref())
+            .map_or(8 * voxels, |g| {
+                (0..3)
+                    .map(|a| fft_len(g.dims[a], g.periodic[a]) as u64)
+                    .product()
+            });
+        let memory = voxels + if p.radial { 32 * padded } else { 0 };
+        let mut pf = Preflight::from_info(&self.info(), memory).announce("s2", table);
+        if !p.radial {
+            pf.outputs.retain(|k, _| k != "radial");
+        }
+        Ok(pf)
     }
 
     fn run(
@@ -232,13 +421,40 @@ impl TypedStage for TwoPoint {
             }
             ctx.progress(j as u64 + 1, p.axes.len() as u64)?;
         }
+        let mut out = Outputs::new();
+        if p.radial {
+            let width = g.spacing.iter().copied().fold(f64::INFINITY, f64::min);
+            let radius = match p.max_lag {
+                Some(l) => l.si(),
+                None => (0..3)
+                    .map(|a| (g.dims[a] / 2) as f64 * g.spacing[a])
+                    .fold(f64::INFINITY, f64::min),
+            };
+            let shells = (radius / width + 1e-9).floor() as usize;
+            let c = radial_counts(&mask, g.dims, g.spacing, g.periodic, width, shells);
+            let ratio = |(b, a): (u64, u64)| {
+                if a == 0 {
+                    f64::NAN
+                } else {
+                    b as f64 / a as f64
+                }
+            };
+            out.insert(
+                "radial".into(),
+                Artifact::Table(
+                    Table::new("two_point_radial")
+                        .with_f64("lag", "m", (0..=shells).map(|k| k as f64 * width).collect())
+                        .with_f64("s2", "1", c.iter().map(|&x| ratio(x)).collect())
+                        .with_i64("pairs", "", c.iter().map(|x| x.1 as i64).collect()),
+                ),
+            );
+        }
         let table = Table::new("two_point")
             .with_str("axis", axis)
             .with_i64("lag_voxels", "", lag_v)
             .with_f64("lag", "m", lag)
             .with_f64("s2", "1", s2)
             .with_i64("pairs", "", pairs);
-        let mut out = Outputs::new();
         out.insert("s2".into(), Artifact::Table(table));
         Ok(out)
     }
