@@ -214,7 +214,7 @@ impl TypedStage for Tortuosity {
              axes wrap; the axis measured is cut at its faces. Also the fraction of the \
              outlet reached and of the phase on an inlet-outlet path. For the formation and \
              tortuosity factors run conductivity.fft on the pore phase (see \
-             docs/stages/analysis.md). Memory: about 30 bytes per voxel per axis (the axes \
+             docs/stages/analysis.md). Memory: about 20 bytes per voxel per axis (the axes \
              run in parallel).",
         )
         .inputs(vec![PortSpec::new(
@@ -247,12 +247,13 @@ impl TypedStage for Tortuosity {
                 }
             }
         }
-        // Per axis: distances 8, path flags 1, the heap up to 16 per voxel in the worst
-        // case (a few percent of it in practice); the mask 1.
+        // Per axis: distances 8, path flags 1, the heap and the flood stack (16 bytes per
+        // entry, a small share of the voxels at a time in practice: 11 bytes per voxel per
+        // axis were measured in all); the mask 1.
         let voxels = announced_voxels(i);
         let rows = p.axes.len() as u64;
         Ok(
-            Preflight::from_info(&self.info(), voxels + 30 * rows * voxels).announce(
+            Preflight::from_info(&self.info(), voxels + 20 * rows * voxels).announce(
                 "tortuosity",
                 ArtifactMeta::of(ArtifactKind::Table).with_count(rows, Some([rows, rows])),
             ),
