@@ -17,11 +17,13 @@ Boolean model, exp(-rho V2(r)). Short runs only: n = 96 takes seconds.
 
 import argparse
 import csv
+import json
 import math
 import os
 import subprocess
 import sys
 import tempfile
+import time
 
 import numpy as np
 
@@ -100,11 +102,16 @@ export:
             f.write(yaml)
         pipe = os.path.abspath(a.pipe)
         subprocess.run([pipe, "run", "--no-cache", "--quiet", path], check=True, cwd=d)
+        # Stage wall times from the run record (the export directory's run.json).
+        with open(os.path.join(d, "run.json")) as f:
+            steps = {st["step"]: st["wall_s"] for st in json.load(f)["steps"]}
         ours_mean = float(read_csv(f"{d}/lt_summary.csv")[0]["mean_thickness"]) / h
         dist = read_csv(f"{d}/lt.csv")
         s2 = read_csv(f"{d}/s2.csv")
 
+    t0 = time.perf_counter()
     lt = ps.filters.local_thickness(pore, sizes=100)
+    t_lt = time.perf_counter() - t0
     theirs = 2 * lt[pore]
     print(f"mean pore thickness: grainpipe {ours_mean:.3f} voxels, porespy (2 x radius) {theirs.mean():.3f}")
     edges = [float(r["diameter_lower"]) / h for r in dist] + [float(dist[-1]["diameter_upper"]) / h]
@@ -114,7 +121,9 @@ export:
         lo, hi = float(r["diameter_lower"]) / h, float(r["diameter_upper"]) / h
         print(f"{lo:6.2f} - {hi:6.2f}       {float(r['volume_fraction']):.4f}     {c / pore.sum():.4f}")
 
+    t0 = time.perf_counter()
     tp = ps.metrics.two_point_correlation(pore)
+    t_s2 = time.perf_counter() - t0
     dist_r = np.asarray(tp.distance)
     prob = np.asarray(tp.probability_scaled if hasattr(tp, "probability_scaled") else tp.probability)
     print("lag (voxels)  S2 x      S2 y      S2 z      porespy radial   closed form exp(-rho V2)")
@@ -126,6 +135,9 @@ export:
         closed = math.exp(-rho * union_volume(a.radius, k))
         xs = "  ".join(f"{by_axis[ax].get(k, float('nan')):.4f}" for ax in "xyz")
         print(f"{k:6d}        {xs}    {radial:.4f}           {closed:.4f}")
+    print("wall time [s]       grainpipe   porespy   ratio (porespy / grainpipe)")
+    for name, ours, theirs_t in (("local thickness", steps["lt"], t_lt), ("two-point S2", steps["s2"], t_s2)):
+        print(f"{name:18s}  {ours:9.3f}   {theirs_t:7.3f}   {theirs_t / ours:.1f}")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 //! The HTML of a run report and of a single artifact (the `html` export format), from the
 //! run record and the extracted report data.
 
-use crate::data::{Body, Item, Picture, Sizes};
+use crate::data::{Body, Col, Item, Picture, Sizes};
 use crate::html::{self, esc, kv, num, pct, table};
 use crate::numbers;
 use crate::record::RunRecord;
@@ -573,12 +573,44 @@ pub fn table_html(it: &Item) -> String {
         format!("{rows} row(s).")
     };
     format!(
-        "<div class=\"table\" data-source=\"{}\"><h3>{} <span class=\"note\">({})</span></h3>{}</div>",
+        "<div class=\"table\" data-source=\"{}\"><h3>{} <span class=\"note\">({})</span></h3>{}{}</div>",
         esc(&it.source),
         esc(&it.source),
         esc(name),
+        distribution_chart(name, columns, *rows).unwrap_or_default(),
         table("data", &head, &body, &caption)
     )
+}
+
+/// The chart of a distribution table a stage writes (analysis.local_thickness: volume share
+/// per diameter bin and the cumulative share), when the item holds all of its rows.
+fn distribution_chart(name: &str, columns: &[Col], rows: usize) -> Option<String> {
+    if name != "local_thickness" {
+        return None;
+    }
+    let col = |n: &str| -> Option<Vec<f64>> {
+        let c = columns.iter().find(|c| c.name == n)?;
+        Some(
+            c.values
+                .iter()
+                .map(|v| v.as_f64().unwrap_or(f64::NAN))
+                .collect(),
+        )
+    };
+    let (lower, upper) = (col("diameter_lower")?, col("diameter_upper")?);
+    let (share, cumulative) = (col("volume_fraction")?, col("cumulative")?);
+    if lower.is_empty() || lower.len() != rows {
+        return None;
+    }
+    let mut edges: Vec<f64> = lower.iter().map(|d| d * 1e6).collect();
+    edges.push(upper[upper.len() - 1] * 1e6);
+    Some(html::histogram_svg(
+        &edges,
+        &share.iter().map(|v| 100.0 * v).collect::<Vec<_>>(),
+        Some(&cumulative.iter().map(|v| 100.0 * v).collect::<Vec<_>>()),
+        "local thickness (diameter of the largest ball) [µm]",
+        "share of the phase's volume [%]",
+    ))
 }
 
 /// Any item as HTML (collections member by member).
@@ -1015,5 +1047,29 @@ mod tests {
         assert_eq!(super::utc(0.0), "1970-01-01 00:00:00 UTC");
         // 2000-02-29 12:34:56 UTC = 951827696.
         assert_eq!(super::utc(951827696.0), "2000-02-29 12:34:56 UTC");
+    }
+
+    /// A local-thickness distribution gets its histogram (one bar per bin, the cumulative
+    /// curve), other tables none.
+    #[test]
+    fn local_thickness_table_gets_a_histogram() {
+        use crate::data::Col;
+        let col = |name: &str, v: &[f64]| Col {
+            name: name.into(),
+            unit: "m".into(),
+            values: v.iter().map(|&x| serde_json::json!(x)).collect(),
+        };
+        let columns = vec![
+            col("diameter_lower", &[0.0, 1e-5, 2e-5]),
+            col("diameter_upper", &[1e-5, 2e-5, 3e-5]),
+            col("volume_fraction", &[0.2, 0.5, 0.3]),
+            col("cumulative", &[0.2, 0.7, 1.0]),
+        ];
+        let svg = super::distribution_chart("local_thickness", &columns, 3).unwrap();
+        assert_eq!(svg.matches("<rect").count(), 3, "{svg}");
+        assert!(svg.contains("polyline") && svg.contains("µm"));
+        assert!(super::distribution_chart("phases", &columns, 3).is_none());
+        // a table cut to its first and last rows is not drawn
+        assert!(super::distribution_chart("local_thickness", &columns, 90).is_none());
     }
 }
