@@ -310,7 +310,18 @@ impl TypedStage for PermeabilityStage {
         // The grid solved on (coarsened or not), the sub-voxel settings checked.
         let grid = p.interface.check(inputs.get("subvoxel"), &fine)?;
         let bc = p.boundary.resolve(grid.periodic, &BOUNDARIES)?;
-        let n = solved_voxels(p, &bc, &grid) as f64;
+        let solved = solved_voxels(p, &bc, &grid);
+        if solved >= u32::MAX as u64 {
+            return Err(StageError::param(
+                "boundary",
+                format!(
+                    "`{}` solves a cell of {solved} voxels, more than the solver's 2^32; \
+                     coarsen the voxel size or crop the image",
+                    bc.boundary.name()
+                ),
+            ));
+        }
+        let n = solved as f64;
         let composite = p.interface.interfaces == Interfaces::Composite;
         // The permeameter keeps each direction's solution to read its faces.
         let bpv = bytes_per_voxel(p.fields || bc.boundary == Boundary::Walls, composite);
