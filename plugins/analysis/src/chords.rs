@@ -9,10 +9,10 @@
 //! distribution short, leaving it out biases it slightly short of long chords; the count
 //! says how much was left out).
 
-use crate::pores::{announced_voxels, check_axes, Axis, PhaseSelection};
+use crate::pores::{announced_voxels, check_axes, table_rows, Axis, AxisLines, PhaseSelection};
 use grainpipe_core::{
-    input, params, Artifact, ArtifactKind, ArtifactMeta, InputMetas, Inputs, Outputs, PortSpec,
-    Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
+    params, Artifact, ArtifactKind, InputMetas, Inputs, Outputs, PortSpec, Preflight, RunContext,
+    StageError, StageInfo, Table, TypedStage,
 };
 use rayon::prelude::*;
 
@@ -58,10 +58,9 @@ impl Chords {
 /// wrap.
 pub fn chord_counts(mask: &[bool], dims: [usize; 3], axis: usize, periodic: bool) -> Chords {
     let n = dims[axis];
-    let [nx, ny, nz] = dims;
-    assert_eq!(mask.len(), nx * ny * nz);
-    let groups = if axis == 2 { ny } else { nz };
-    let parts: Vec<Chords> = (0..groups)
+    assert_eq!(mask.len(), dims.iter().product::<usize>());
+    let lines = AxisLines::new(dims, axis);
+    let parts: Vec<Chords> = (0..lines.groups)
         .into_par_iter()
         .map(|g| {
             let mut c = Chords {
@@ -71,18 +70,9 @@ pub fn chord_counts(mask: &[bool], dims: [usize; 3], axis: usize, periodic: bool
                 voxels: 0,
                 crossings: 0,
             };
-            let (count, stride) = match axis {
-                0 => (ny, 1),
-                1 => (nx, nx),
-                _ => (nx, nx * ny),
-            };
-            for l in 0..count {
-                let s = match axis {
-                    0 => nx * (l + ny * g),
-                    1 => l + nx * ny * g,
-                    _ => l + nx * g,
-                };
-                let at = |k: usize| mask[s + k * stride];
+            for l in 0..lines.per_group {
+                let s = lines.start(g, l);
+                let at = |k: usize| mask[s + k * lines.stride];
                 line_chords(n, at, periodic, &mut c);
             }
             c
@@ -223,12 +213,8 @@ impl TypedStage for ChordLengths {
         p.selection.check()?;
         check_axes("axes", &p.axes)?;
         let rows = p.axes.len() as u64;
-        Ok(
-            Preflight::from_info(&self.info(), announced_voxels(i)).announce(
-                "summary",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(rows, Some([rows, rows])),
-            ),
-        )
+        Ok(Preflight::from_info(&self.info(), announced_voxels(i))
+            .announce("summary", table_rows(rows)))
     }
 
     fn run(
@@ -238,25 +224,11 @@ impl TypedStage for ChordLengths {
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let image = input(inputs, "image", Artifact::as_phase_image)?;
-        let mask = p.selection.mask(image)?;
+        let (image, mask) = p.selection.image_and_mask(inputs)?;
         let g = &image.grid;
-        let mut s = (
-            Vec::new(),
-            Vec::new(),
-            Vec::new(),
-            Vec::new(),
-            Vec::new(),
-            Vec::new(),
-        );
-        let mut d = (
-            Vec::new(),
-            Vec::new(),
-            Vec::new(),
-            Vec::new(),
-            Vec::new(),
-            Vec::new(),
-        );
+        // The columns of the summary and of the distribution.
+        let mut s: (Vec<_>, Vec<_>, Vec<_>, Vec<_>, Vec<_>, Vec<_>) = Default::default();
+        let mut d: (Vec<_>, Vec<_>, Vec<_>, Vec<_>, Vec<_>, Vec<_>) = Default::default();
         for (j, a) in p.axes.iter().enumerate() {
             let k = a.index();
             let h = g.spacing[k];

@@ -6,7 +6,8 @@
 //!   analysis of a table of realizations (also used by `pipe sweep`).
 //! - Pore-space measures of one phase (what a porespy user expects): `analysis.local_thickness`
 //!   ([`thickness`]), `analysis.two_point` ([`two_point`]), `analysis.chords` ([`chords`]),
-//!   `analysis.tortuosity` ([`tortuosity`]); their shared parameters in [`pores`].
+//!   `analysis.tortuosity` ([`tortuosity`]); their shared parameters and lattice helpers in
+//!   [`pores`].
 //! - Kernels free of framework types: [`components`] (6-connected labelling with periodic
 //!   winding), [`surface`] (transition counts, Crofton and face-count surface estimates),
 //!   [`thickness::local_thickness`], [`two_point::pair_counts`], [`chords::chord_counts`],

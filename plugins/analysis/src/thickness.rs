@@ -27,11 +27,13 @@
 //!    radius R, instead of N R^3 for every voxel's ball), and the maximum does not depend
 //!    on the order or the thread count.
 
-use crate::pores::{announced_voxels, PhaseSelection};
+use crate::pores::{
+    announced_voxels, neighbour, neighbour_steps, table_rows, wrap_coord, PhaseSelection,
+};
 use grainpipe_core::{
-    input, params, Artifact, ArtifactKind, ArtifactMeta, ComponentConvention, Field, FieldData,
-    Grid, InputMetas, Inputs, Outputs, PortSpec, Preflight, RunContext, StageError, StageInfo,
-    Table, TypedStage,
+    params, Artifact, ArtifactKind, ArtifactMeta, ComponentConvention, Field, FieldData, Grid,
+    InputMetas, Inputs, Outputs, PortSpec, Preflight, RunContext, StageError, StageInfo, Table,
+    TypedStage,
 };
 use rayon::prelude::*;
 
@@ -55,21 +57,7 @@ pub fn local_thickness(
     let (d2, diameter) = ball_diameters(mask, dims, spacing, periodic);
     let [nx, ny, nz] = dims;
     let shift = |c: [usize; 3], o: [i64; 3]| neighbour(dims, periodic, c, o);
-    // The 26 neighbour offsets and their lengths.
-    let mut offsets = Vec::with_capacity(26);
-    for dz in -1i64..=1 {
-        for dy in -1i64..=1 {
-            for dx in -1i64..=1 {
-                if (dx, dy, dz) != (0, 0, 0) {
-                    let len = ((dx as f64 * spacing[0]).powi(2)
-                        + (dy as f64 * spacing[1]).powi(2)
-                        + (dz as f64 * spacing[2]).powi(2))
-                    .sqrt();
-                    offsets.push(([dx, dy, dz], len));
-                }
-            }
-        }
-    }
+    let offsets = neighbour_steps(spacing);
     // Ridge balls, bucketed by the z plane of their centre: (x, y, r^2, D).
     let buckets: Vec<Vec<(u32, u32, f64, f64)>> = (0..nz)
         .into_par_iter()
@@ -110,12 +98,7 @@ pub fn local_thickness(
         .for_each(|(z, plane)| {
             let kz = reach(2);
             for dz in -kz..=kz {
-                let zc = z as i64 + dz;
-                let zc = if (0..nz as i64).contains(&zc) {
-                    zc as usize
-                } else if periodic[2] {
-                    zc.rem_euclid(nz as i64) as usize
-                } else {
+                let Some(zc) = wrap_coord(z as i64 + dz, nz, periodic[2]) else {
                     continue;
                 };
                 // The centre plane zc, seen at offset -dz from plane z.
@@ -155,12 +138,7 @@ fn paint_disc(
         if rest <= 0.0 {
             continue;
         }
-        let y = cy as i64 + dy;
-        let y = if (0..ny as i64).contains(&y) {
-            y as usize
-        } else if periodic[1] {
-            y.rem_euclid(ny as i64) as usize
-        } else {
+        let Some(y) = wrap_coord(cy as i64 + dy, ny, periodic[1]) else {
             continue;
         };
         let kx = (rest.sqrt() / spacing[0]).floor() as i64;
@@ -182,14 +160,9 @@ fn paint_disc(
             continue;
         }
         for x in lo..=hi {
-            let x = if (0..nx as i64).contains(&x) {
-                x as usize
-            } else if periodic[0] {
-                x.rem_euclid(nx as i64) as usize
-            } else {
-                continue;
-            };
-            raise(plane, mask, base, row + x, dia);
+            if let Some(x) = wrap_coord(x, nx, periodic[0]) {
+                raise(plane, mask, base, row + x, dia);
+            }
         }
     }
 }
@@ -254,23 +227,6 @@ pub fn ball_diameters(
         })
         .collect();
     (d2, diameter)
-}
-
-/// Index of voxel `c` shifted by `o`, None past a non-periodic face.
-fn neighbour(dims: [usize; 3], periodic: [bool; 3], c: [usize; 3], o: [i64; 3]) -> Option<usize> {
-    let mut q = [0usize; 3];
-    for a in 0..3 {
-        let t = c[a] as i64 + o[a];
-        let m = dims[a] as i64;
-        q[a] = if (0..m).contains(&t) {
-            t as usize
-        } else if periodic[a] && m > 1 {
-            t.rem_euclid(m) as usize
-        } else {
-            return None;
-        };
-    }
-    Some(q[0] + dims[0] * (q[1] + dims[1] * q[2]))
 }
 
 /// The size distribution of a local thickness map: `bins` equal bins from 0 to the largest
@@ -375,14 +331,8 @@ impl TypedStage for LocalThickness {
         let per = 33 + if p.field { 8 } else { 0 };
         let bins = p.bins as u64;
         let mut pf = Preflight::from_info(&self.info(), per * voxels)
-            .announce(
-                "distribution",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(bins, Some([bins, bins])),
-            )
-            .announce(
-                "summary",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
-            );
+            .announce("distribution", table_rows(bins))
+            .announce("summary", table_rows(1));
         match i.get("image").and_then(|m| m.grid.clone()) {
             Some(g) if p.field => {
                 pf = pf.announce("thickness", ArtifactMeta::on_grid(ArtifactKind::Field, g))
@@ -400,8 +350,7 @@ impl TypedStage for LocalThickness {
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let image = input(inputs, "image", Artifact::as_phase_image)?;
-        let mask = p.selection.mask(image)?;
+        let (image, mask) = p.selection.image_and_mask(inputs)?;
         let g = &image.grid;
         ctx.progress(0, 2)?;
         let t = local_thickness(&mask, g.dims, g.spacing, g.periodic);

@@ -13,10 +13,13 @@
 //! another direction is measured as a staircase of such steps, at most 8 % long (the
 //! 26-neighbour metric's largest error, at about 22 degrees off an axis in a plane).
 
-use crate::pores::{announced_voxels, check_axes, coords, Axis, PhaseSelection};
+use crate::pores::{
+    announced_voxels, check_axes, coords, neighbour, neighbour_steps, table_rows, Axis,
+    PhaseSelection,
+};
 use grainpipe_core::{
-    input, params, Artifact, ArtifactKind, ArtifactMeta, InputMetas, Inputs, Outputs, PortSpec,
-    Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
+    params, Artifact, ArtifactKind, InputMetas, Inputs, Outputs, PortSpec, Preflight, RunContext,
+    StageError, StageInfo, Table, TypedStage,
 };
 use rayon::prelude::*;
 use std::cmp::Ordering;
@@ -42,40 +45,17 @@ pub fn geodesic(
             heap.push(Entry(0.0, i));
         }
     }
-    let mut steps = Vec::with_capacity(26);
-    for dz in -1i64..=1 {
-        for dy in -1i64..=1 {
-            for dx in -1i64..=1 {
-                if (dx, dy, dz) != (0, 0, 0) {
-                    let len = ((dx as f64 * spacing[0]).powi(2)
-                        + (dy as f64 * spacing[1]).powi(2)
-                        + (dz as f64 * spacing[2]).powi(2))
-                    .sqrt();
-                    steps.push(([dx, dy, dz], len));
-                }
-            }
-        }
-    }
-    let wrap: [bool; 3] = [0, 1, 2].map(|a| a != axis && periodic[a] && dims[a] > 2);
+    let steps = neighbour_steps(spacing);
+    let wrap = lateral_wrap(dims, periodic, axis);
     while let Some(Entry(d, i)) = heap.pop() {
         if d > dist[i] {
             continue;
         }
         let c = coords(dims, i);
-        'step: for &(o, len) in &steps {
-            let mut q = [0usize; 3];
-            for a in 0..3 {
-                let t = c[a] as i64 + o[a];
-                let m = dims[a] as i64;
-                q[a] = if (0..m).contains(&t) {
-                    t as usize
-                } else if wrap[a] {
-                    t.rem_euclid(m) as usize
-                } else {
-                    continue 'step;
-                };
-            }
-            let j = q[0] + dims[0] * (q[1] + dims[1] * q[2]);
+        for &(o, len) in &steps {
+            let Some(j) = neighbour(dims, wrap, c, o) else {
+                continue;
+            };
             if mask[j] && d + len < dist[j] {
                 dist[j] = d + len;
                 heap.push(Entry(d + len, j));
@@ -83,6 +63,12 @@ pub fn geodesic(
         }
     }
     dist
+}
+
+/// The axes that wrap for paths along `axis`: the periodic lateral ones of more than two
+/// voxels (the axis itself never does).
+fn lateral_wrap(dims: [usize; 3], periodic: [bool; 3], axis: usize) -> [bool; 3] {
+    [0, 1, 2].map(|a| a != axis && periodic[a] && dims[a] > 2)
 }
 
 /// Heap entry ordered by distance, smallest first (then by index, for a fixed order).
@@ -146,31 +132,17 @@ pub fn tortuosity(
     for &i in &stack {
         on_path[i] = true;
     }
-    let wrap: [bool; 3] = [0, 1, 2].map(|a| a != axis && periodic[a] && dims[a] > 2);
+    let wrap = lateral_wrap(dims, periodic, axis);
+    let steps = neighbour_steps(spacing);
     while let Some(i) = stack.pop() {
         let c = coords(dims, i);
-        for dz in -1i64..=1 {
-            for dy in -1i64..=1 {
-                'x: for dx in -1i64..=1 {
-                    let o = [dx, dy, dz];
-                    let mut q = [0usize; 3];
-                    for a in 0..3 {
-                        let t = c[a] as i64 + o[a];
-                        let m = dims[a] as i64;
-                        q[a] = if (0..m).contains(&t) {
-                            t as usize
-                        } else if wrap[a] {
-                            t.rem_euclid(m) as usize
-                        } else {
-                            continue 'x;
-                        };
-                    }
-                    let j = q[0] + dims[0] * (q[1] + dims[1] * q[2]);
-                    if dist[j].is_finite() && !on_path[j] {
-                        on_path[j] = true;
-                        stack.push(j);
-                    }
-                }
+        for &(o, _) in &steps {
+            let Some(j) = neighbour(dims, wrap, c, o) else {
+                continue;
+            };
+            if dist[j].is_finite() && !on_path[j] {
+                on_path[j] = true;
+                stack.push(j);
             }
         }
     }
@@ -253,10 +225,8 @@ impl TypedStage for Tortuosity {
         let voxels = announced_voxels(i);
         let rows = p.axes.len() as u64;
         Ok(
-            Preflight::from_info(&self.info(), voxels + 20 * rows * voxels).announce(
-                "tortuosity",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(rows, Some([rows, rows])),
-            ),
+            Preflight::from_info(&self.info(), voxels + 20 * rows * voxels)
+                .announce("tortuosity", table_rows(rows)),
         )
     }
 
@@ -267,8 +237,7 @@ impl TypedStage for Tortuosity {
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let image = input(inputs, "image", Artifact::as_phase_image)?;
-        let mask = p.selection.mask(image)?;
+        let (image, mask) = p.selection.image_and_mask(inputs)?;
         let g = &image.grid;
         ctx.progress(0, 1)?;
         let rows: Vec<AxisTortuosity> = p

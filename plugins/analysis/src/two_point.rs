@@ -14,11 +14,11 @@
 //! autocorrelation (zero-padded along non-periodic axes), its integer counts summed over the
 //! displacements of each shell and divided by the pairs those displacements have.
 
-use crate::pores::{announced_voxels, check_axes, Axis, PhaseSelection};
+use crate::pores::{announced_voxels, check_axes, table_rows, Axis, AxisLines, PhaseSelection};
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
-    input, params, Artifact, ArtifactKind, ArtifactMeta, InputMetas, Inputs, Outputs, PortSpec,
-    Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
+    params, Artifact, ArtifactKind, ArtifactMeta, InputMetas, Inputs, Outputs, PortSpec, Preflight,
+    RunContext, StageError, StageInfo, Table, TypedStage,
 };
 use rayon::prelude::*;
 use rustfft::num_complex::Complex;
@@ -37,40 +37,23 @@ pub fn pair_counts(
     assert_eq!(mask.len(), dims.iter().product::<usize>());
     let max_lag = max_lag.min(n - 1);
     let lines_total = (mask.len() / n) as u64;
-    let m = if periodic {
-        n
-    } else {
-        (2 * n - 1).next_power_of_two().max(2)
-    };
+    let m = fft_len(n, periodic);
     let mut planner = FftPlanner::<f64>::new();
     let fwd = planner.plan_fft_forward(m);
     let inv = planner.plan_fft_inverse(m);
-    let [nx, ny, nz] = dims;
-    // Groups of lines: per z plane for x and y, per y row for z.
-    let groups = if axis == 2 { ny } else { nz };
-    let per_group: Vec<Vec<u64>> = (0..groups)
+    let lines = AxisLines::new(dims, axis);
+    let per_group: Vec<Vec<u64>> = (0..lines.groups)
         .into_par_iter()
         .map_init(
             || (Vec::<Complex<f64>>::new(), vec![Complex::default(); m]),
             |(buf, spectrum), g| {
-                // The lines of the group (first voxel, stride), gathered into consecutive
-                // chunks of length m.
-                let (count, stride) = match axis {
-                    0 => (ny, 1),
-                    1 => (nx, nx),
-                    _ => (nx, nx * ny),
-                };
-                let start = |l: usize| match axis {
-                    0 => nx * (l + ny * g),
-                    1 => l + nx * ny * g,
-                    _ => l + nx * g,
-                };
+                // The lines of the group, gathered into consecutive chunks of length m.
                 buf.clear();
-                buf.resize(count * m, Complex::default());
-                for l in 0..count {
-                    let s = start(l);
+                buf.resize(lines.per_group * m, Complex::default());
+                for l in 0..lines.per_group {
+                    let s = lines.start(g, l);
                     for k in 0..n {
-                        if mask[s + k * stride] {
+                        if mask[s + k * lines.stride] {
                             buf[l * m + k].re = 1.0;
                         }
                     }
@@ -279,9 +262,19 @@ pub struct TwoPointParams {
 
 pub struct TwoPoint;
 
+/// The longest lag (in voxels) along an axis of `n` voxels: half the axis when periodic,
+/// else all of it less one voxel.
+fn lag_cap(n: usize, periodic: bool) -> usize {
+    if periodic {
+        n / 2
+    } else {
+        n - 1
+    }
+}
+
 /// Lags (in voxels) measured along an axis of `n` voxels of edge `h`.
 fn lags(p: &TwoPointParams, n: usize, h: f64, periodic: bool) -> usize {
-    let cap = if periodic { n / 2 } else { n - 1 };
+    let cap = lag_cap(n, periodic);
     match p.max_lag {
         Some(l) => ((l.si() / h + 1e-9).floor() as usize).min(cap),
         None => (n / 2).min(cap),
@@ -346,15 +339,11 @@ impl TypedStage for TwoPoint {
                     lags(p, g.dims[k], g.spacing[k], g.periodic[k]) as u64 + 1
                 })
                 .sum();
-            table = table.with_count(rows, Some([rows, rows]));
+            table = table_rows(rows);
             for a in &p.axes {
                 let k = a.index();
                 if let Some(l) = p.max_lag {
-                    let cap = if g.periodic[k] {
-                        g.dims[k] / 2
-                    } else {
-                        g.dims[k] - 1
-                    };
+                    let cap = lag_cap(g.dims[k], g.periodic[k]);
                     if l.si() > (cap as f64 + 0.5) * g.spacing[k] {
                         return Err(StageError::param(
                             "max_lag",
@@ -403,8 +392,7 @@ impl TypedStage for TwoPoint {
         inputs: &Inputs,
         ctx: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let image = input(inputs, "image", Artifact::as_phase_image)?;
-        let mask = p.selection.mask(image)?;
+        let (image, mask) = p.selection.image_and_mask(inputs)?;
         let g = &image.grid;
         let (mut axis, mut lag_v, mut lag, mut s2, mut pairs) =
             (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());

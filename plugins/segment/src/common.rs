@@ -3,7 +3,10 @@
 
 use grainpipe_core::params::ParamType;
 use grainpipe_core::units::{parse_quantity, Dim, Q};
-use grainpipe_core::{ArtifactKind, Field, FieldData, Grid, InputMetas, PortSpec, StageError};
+use grainpipe_core::{
+    Artifact, ArtifactKind, ArtifactMeta, Field, FieldData, Grid, InputMetas, Inputs, Outputs,
+    PhaseImage, PortSpec, Preflight, StageError, StageInfo,
+};
 use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use serde_json::{json, Value};
 use std::marker::PhantomData;
@@ -191,6 +194,52 @@ pub fn connected_input(i: &InputMetas) -> Result<(&'static str, ArtifactKind, Gr
     };
     let grid = grainpipe_core::announced_grid(i, port)?;
     Ok((port, kind, grid))
+}
+
+/// The preflight of a stage that takes either a phase image or a field: only the output named
+/// like the connected input `port`, announced as `kind` on the output `grid`.
+pub fn image_or_field_preflight(
+    info: &StageInfo,
+    memory_bytes: u64,
+    port: &str,
+    kind: ArtifactKind,
+    grid: &Grid,
+) -> Preflight {
+    let mut pf = Preflight::from_info(info, memory_bytes);
+    pf.outputs.retain(|k, _| k == port);
+    pf.announce(port, ArtifactMeta::on_grid(kind, grid.clone()))
+}
+
+/// The output of a stage that takes either a phase image or a field, under the name of the
+/// connected input and on `grid`: the image with the labels `labels` makes of it (phase
+/// table kept), or the field with the values `values` makes of it (name, unit and
+/// convention kept).
+pub fn image_or_field_output(
+    inputs: &Inputs,
+    grid: &Grid,
+    labels: impl FnOnce(&PhaseImage) -> Vec<u8>,
+    values: impl FnOnce(&Field) -> FieldData,
+) -> Result<Outputs, StageError> {
+    let mut out = Outputs::new();
+    if inputs.contains_key("image") {
+        let im = grainpipe_core::input(inputs, "image", Artifact::as_phase_image)?;
+        out.insert(
+            "image".into(),
+            Artifact::PhaseImage(PhaseImage {
+                grid: grid.clone(),
+                labels: labels(im),
+                phases: im.phases.clone(),
+            }),
+        );
+    } else {
+        let f = grainpipe_core::input(inputs, "field", Artifact::as_field)?;
+        let data = values(f);
+        out.insert(
+            "field".into(),
+            Artifact::Field(field_like(f, grid.clone(), data)?),
+        );
+    }
+    Ok(out)
 }
 
 /// Bytes per voxel of a field for memory estimates when its precision and components are

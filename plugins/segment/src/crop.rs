@@ -1,11 +1,14 @@
 //! `segment.crop`: a box of voxels out of a phase image or a field (kernel
 //! [`crate::resample::crop`]).
 
-use crate::common::{connected_input, field_like, image_or_field_ports, FIELD_BYTES};
+use crate::common::{
+    connected_input, image_or_field_output, image_or_field_ports, image_or_field_preflight,
+    FIELD_BYTES,
+};
 use crate::resample::crop;
 use grainpipe_core::{
-    params, Artifact, ArtifactKind, ArtifactMeta, FieldData, Grid, InputMetas, Inputs, Outputs,
-    PhaseImage, Preflight, RunContext, StageError, StageInfo, TypedStage,
+    params, ArtifactKind, FieldData, Grid, InputMetas, Inputs, Outputs, Preflight, RunContext,
+    StageError, StageInfo, TypedStage,
 };
 
 #[params]
@@ -102,11 +105,11 @@ impl TypedStage for Crop {
         } else {
             1
         };
-        let mut pf = Preflight::from_info(&self.info(), per_voxel * grid.voxel_count() as u64);
-        pf.outputs.retain(|k, _| k == port);
-        Ok(pf
-            .announce(port, ArtifactMeta::on_grid(kind, grid.clone()))
-            .with_plan((grid, size)))
+        let bytes = per_voxel * grid.voxel_count() as u64;
+        Ok(
+            image_or_field_preflight(&self.info(), bytes, port, kind, &grid)
+                .with_plan((grid, size)),
+        )
     }
 
     fn run(
@@ -116,32 +119,17 @@ impl TypedStage for Crop {
         inputs: &Inputs,
         _: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let mut out = Outputs::new();
-        if let Some(a) = inputs.get("image") {
-            let im = a
-                .as_phase_image()
-                .ok_or_else(|| StageError::input("image", format!("got a {}", a.kind())))?;
-            let labels = crop(&im.labels, im.grid.dims, 1, p.start, *size);
-            out.insert(
-                "image".into(),
-                Artifact::PhaseImage(PhaseImage {
-                    grid: grid.clone(),
-                    labels,
-                    phases: im.phases.clone(),
-                }),
-            );
-        } else {
-            let f = grainpipe_core::input(inputs, "field", Artifact::as_field)?;
-            let c = f.components;
-            let data = match &f.data {
-                FieldData::F32(v) => FieldData::F32(crop(v, f.grid.dims, c, p.start, *size)),
-                FieldData::F64(v) => FieldData::F64(crop(v, f.grid.dims, c, p.start, *size)),
-            };
-            out.insert(
-                "field".into(),
-                Artifact::Field(field_like(f, grid.clone(), data)?),
-            );
-        }
-        Ok(out)
+        image_or_field_output(
+            inputs,
+            grid,
+            |im| crop(&im.labels, im.grid.dims, 1, p.start, *size),
+            |f| {
+                let c = f.components;
+                match &f.data {
+                    FieldData::F32(v) => FieldData::F32(crop(v, f.grid.dims, c, p.start, *size)),
+                    FieldData::F64(v) => FieldData::F64(crop(v, f.grid.dims, c, p.start, *size)),
+                }
+            },
+        )
     }
 }

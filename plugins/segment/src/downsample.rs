@@ -2,12 +2,13 @@
 //! mean of field values (kernels in [`crate::resample`]).
 
 use crate::common::{
-    connected_input, field_like, field_values, image_or_field_ports, same_precision, FIELD_BYTES,
+    connected_input, field_values, image_or_field_output, image_or_field_ports,
+    image_or_field_preflight, same_precision, FIELD_BYTES,
 };
 use crate::resample::{downsample_mean, downsample_mode};
 use grainpipe_core::{
-    params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, PhaseImage,
-    Preflight, RunContext, StageError, StageInfo, TypedStage,
+    params, ArtifactKind, Grid, InputMetas, Inputs, Outputs, Preflight, RunContext, StageError,
+    StageInfo, TypedStage,
 };
 
 #[params]
@@ -93,11 +94,7 @@ impl TypedStage for Downsample {
         } else {
             grid.voxel_count() as u64
         };
-        let mut pf = Preflight::from_info(&self.info(), bytes);
-        pf.outputs.retain(|k, _| k == port);
-        Ok(pf
-            .announce(port, ArtifactMeta::on_grid(kind, grid.clone()))
-            .with_plan((f, grid)))
+        Ok(image_or_field_preflight(&self.info(), bytes, port, kind, &grid).with_plan((f, grid)))
     }
 
     fn run(
@@ -107,29 +104,15 @@ impl TypedStage for Downsample {
         inputs: &Inputs,
         _: &RunContext,
     ) -> Result<Outputs, StageError> {
-        let mut out = Outputs::new();
-        if let Some(a) = inputs.get("image") {
-            let im = a
-                .as_phase_image()
-                .ok_or_else(|| StageError::input("image", format!("got a {}", a.kind())))?;
-            let labels = downsample_mode(&im.labels, im.grid.dims, *f);
-            out.insert(
-                "image".into(),
-                Artifact::PhaseImage(PhaseImage {
-                    grid: grid.clone(),
-                    labels,
-                    phases: im.phases.clone(),
-                }),
-            );
-        } else {
-            let fd = grainpipe_core::input(inputs, "field", Artifact::as_field)?;
-            let mean = downsample_mean(&field_values(&fd.data), fd.grid.dims, fd.components, *f);
-            let data = same_precision(&fd.data, mean);
-            out.insert(
-                "field".into(),
-                Artifact::Field(field_like(fd, grid.clone(), data)?),
-            );
-        }
-        Ok(out)
+        image_or_field_output(
+            inputs,
+            grid,
+            |im| downsample_mode(&im.labels, im.grid.dims, *f),
+            |fd| {
+                let mean =
+                    downsample_mean(&field_values(&fd.data), fd.grid.dims, fd.components, *f);
+                same_precision(&fd.data, mean)
+            },
+        )
     }
 }
