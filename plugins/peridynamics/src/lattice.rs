@@ -225,8 +225,11 @@ pub struct Sweep {
 fn bond_k(ri: u32, rj: u32, ki: f32, kint: f32) -> f32 {
     // Section II.D: same region -> the region's own constant (particle or matrix bond);
     // different regions -> interface bond; a node without material bonds to nothing.
+    // Either end without material: no bond. A void node next to material must not take the
+    // interface constant: its visits of the bond would add energy the material does not
+    // store (2x the grip work on a plate with a hole) and forces on a node with no unknowns.
     let k = if ri == rj { ki } else { kint };
-    if rj == 0 {
+    if ri == 0 || rj == 0 {
         0.0
     } else {
         k
