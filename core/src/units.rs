@@ -337,6 +337,11 @@ impl<'de, D: Dim> Deserialize<'de> for Q<D> {
 
 pub type LengthQ = Q<Length>;
 
+/// Largest elastic modulus the solvers accept: 1e15 Pa, about 1000 times diamond's Young's
+/// modulus. Above it the value is a unit slip (`GPa` for `Pa` twice over), and energies of
+/// order E^2 head for the f64 overflow.
+pub const MAX_MODULUS: f64 = 1e15;
+
 #[cfg(test)]
 mod tests {
     use super::*;

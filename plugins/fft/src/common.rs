@@ -180,10 +180,7 @@ impl Material {
     }
 }
 
-/// Largest modulus accepted: 1e15 Pa, about 1000 times diamond's Young's modulus. Above it
-/// the value is a unit slip (`GPa` for `Pa` twice over), and energies of order E^2 head for
-/// the f64 overflow.
-pub const MAX_MODULUS: f64 = 1e15;
+pub use grainpipe_core::units::MAX_MODULUS;
 
 fn plausible_modulus(key: &str, v: f64) -> Result<(), String> {
     if v > MAX_MODULUS {

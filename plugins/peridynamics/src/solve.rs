@@ -72,6 +72,12 @@ pub enum SolveError {
         residual: f64,
         window: usize,
     },
+    /// CG's recursive residual reached the tolerance but the true residual, recomputed
+    /// from the displacements, did not fall on restart: the f32 round-off floor.
+    RoundOffFloor {
+        iterations: usize,
+        residual: f64,
+    },
     /// Energy grew (or became non-finite): an unstable time step or a diverging run.
     Diverged {
         iteration: usize,
@@ -99,7 +105,17 @@ impl fmt::Display for SolveError {
             } => write!(
                 f,
                 "not converged after {iterations} iterations: relative residual {residual:.3e}; \
-                 raise max_iterations, loosen tolerance, or use solver: cg for the linear regime"
+                 raise max_iterations or loosen tolerance"
+            ),
+            SolveError::RoundOffFloor {
+                iterations,
+                residual,
+            } => write!(
+                f,
+                "the true residual stays at {residual:.3e} after {iterations} iterations while \
+                 the recursive one reached the tolerance: the f32 round-off floor of this \
+                 image; loosen tolerance to about {:.0e}",
+                residual * 2.0
             ),
             SolveError::Stagnated {
                 iterations,
@@ -314,10 +330,9 @@ pub fn cg(
             // At the f32 floor the recursion keeps "converging" while the true residual
             // stays: fail loudly instead of restarting forever.
             if true_res > 0.9 * last_true {
-                return Err(SolveError::Stagnated {
+                return Err(SolveError::RoundOffFloor {
                     iterations: it,
                     residual: true_res,
-                    window: s.stagnation_window,
                 });
             }
             last_true = true_res;
