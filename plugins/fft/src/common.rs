@@ -1,8 +1,12 @@
 //! Parameter types and helpers shared by `elasticity.fft` and `conductivity.fft`.
 
+use grainpipe_core::boundary::{
+    axis_list, mirror_image, mirror_subvoxel, Boundary, BoundaryParams, ResolvedBoundary,
+};
 use grainpipe_core::params::ParamType;
+use grainpipe_core::subvoxel::Subvoxel;
 use grainpipe_core::units::{Pressure, Q};
-use grainpipe_core::{ParamChoice, Phase, PhaseImage, StageError};
+use grainpipe_core::{ParamChoice, Phase, PhaseImage, RunContext, StageError};
 use indexmap::IndexMap;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
@@ -445,4 +449,33 @@ pub fn check_interfaces(
         ));
     }
     Ok(solved)
+}
+
+/// The boundaries the FFT solvers offer (walls are a flow boundary).
+pub const FFT_BOUNDARIES: [Boundary; 2] = [Boundary::Periodic, Boundary::Mirror];
+
+/// The cell the FFT solvers solve: the boundary resolved on `image` (its warning given) and,
+/// with `boundary: mirror`, the image (and its sub-voxel geometry) reflected across its
+/// non-periodic axes. The cell is `None` when nothing is mirrored.
+pub fn mirrored_cell(
+    boundary: &BoundaryParams,
+    image: &PhaseImage,
+    subvoxel: Option<Subvoxel>,
+    ctx: &RunContext,
+) -> Result<(ResolvedBoundary, Option<PhaseImage>, Option<Subvoxel>), StageError> {
+    let bc = boundary.resolve(image.grid.periodic, &FFT_BOUNDARIES)?;
+    if let Some(w) = bc.warning() {
+        ctx.warn(&w);
+    }
+    if bc.voxel_factor() == 1 {
+        return Ok((bc, None, subvoxel));
+    }
+    let cell = mirror_image(image, bc.mirror);
+    let [x, y, z] = cell.grid.dims;
+    ctx.info(&format!(
+        "boundary: mirror: the image reflected across {} ({x}x{y}x{z} voxels)",
+        axis_list(bc.mirror)
+    ));
+    let sv = subvoxel.map(|sv| mirror_subvoxel(&sv, image.grid.dims, bc.mirror));
+    Ok((bc, Some(cell), sv))
 }

@@ -12,10 +12,9 @@ use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 use crate::common::{
-    check_interfaces, composite_table, phases_present, resolve, solve_failure, unused_keys,
-    validate_solver, Discretization, Precision, Solver,
+    check_interfaces, composite_table, mirrored_cell, phases_present, resolve, solve_failure,
+    unused_keys, validate_solver, Discretization, Precision, Solver, FFT_BOUNDARIES,
 };
-use crate::elasticity::{mirrored_cell, FFT_BOUNDARIES};
 use crate::kernel::composite::{laminate_conductivity, majority_pore_conductivity, Composite};
 use crate::kernel::scalar::{bytes_per_voxel, Scalar};
 use crate::kernel::solver::{solve, SolveOptions};
@@ -257,11 +256,7 @@ pub fn solve_image(
         .interface
         .prepare(input_image, field)
         .map_err(|m| StageError::input("subvoxel", m))?;
-    let bc = p.boundary.resolve(image.grid.periodic, &FFT_BOUNDARIES)?;
-    if let Some(w) = bc.warning() {
-        ctx.warn(&w);
-    }
-    let (mirrored, subvoxel) = mirrored_cell(&bc, image.as_ref(), subvoxel, ctx);
+    let (_, mirrored, subvoxel) = mirrored_cell(&p.boundary, image.as_ref(), subvoxel, ctx)?;
     let image = mirrored.as_ref().unwrap_or(image.as_ref());
     let k = resolve(
         "conductivities",

@@ -13,8 +13,8 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
 
 use crate::common::{
-    check_interfaces, composite_table, phases_present, resolve, solve_failure, unused_keys,
-    validate_solver, Discretization, Material, Precision, Solver,
+    check_interfaces, composite_table, mirrored_cell, phases_present, resolve, solve_failure,
+    unused_keys, validate_solver, Discretization, Material, Precision, Solver, FFT_BOUNDARIES,
 };
 use crate::kernel::composite::{laminate_stiffness, majority_pore_stiffness, Composite, M6};
 use crate::kernel::constants::{self, Class, ENGINEERING_NAMES};
@@ -22,9 +22,7 @@ use crate::kernel::elastic::{bytes_per_voxel, Elastic};
 use crate::kernel::solver::{solve, SolveError, SolveOptions};
 use crate::kernel::Iso;
 use crate::real::Real;
-use grainpipe_core::boundary::{
-    crop_lower, mirror_image, mirror_subvoxel, Boundary, BoundaryParams, ResolvedBoundary,
-};
+use grainpipe_core::boundary::{crop_lower, BoundaryParams};
 use grainpipe_core::subvoxel::{InterfaceParams, Interfaces, PoreVoxels};
 use std::sync::Arc;
 
@@ -118,9 +116,6 @@ pub struct ElasticityParams {
 }
 
 pub struct ElasticityFft;
-
-/// The boundaries the FFT solvers offer (walls are a flow boundary).
-pub const FFT_BOUNDARIES: [Boundary; 2] = [Boundary::Periodic, Boundary::Mirror];
 
 /// What preflight worked out: the grid and the memory per voxel.
 #[derive(Clone, Debug)]
@@ -322,11 +317,7 @@ pub fn solve_image<'a>(
         .interface
         .prepare(input_image, field)
         .map_err(|m| StageError::input("subvoxel", m))?;
-    let bc = p.boundary.resolve(image.grid.periodic, &FFT_BOUNDARIES)?;
-    if let Some(w) = bc.warning() {
-        ctx.warn(&w);
-    }
-    let (mirrored, subvoxel) = mirrored_cell(&bc, image.as_ref(), subvoxel, ctx);
+    let (bc, mirrored, subvoxel) = mirrored_cell(&p.boundary, image.as_ref(), subvoxel, ctx)?;
     let solved = mirrored.as_ref().unwrap_or(image.as_ref());
     let mats = resolve(
         "materials",
@@ -378,30 +369,6 @@ pub fn solve_image<'a>(
         None => result,
     };
     Ok((image, result))
-}
-
-/// With `boundary: mirror`, the image (and its sub-voxel geometry) reflected across its
-/// non-periodic axes: the periodic cell that is solved. `None` when nothing is mirrored.
-pub fn mirrored_cell(
-    bc: &ResolvedBoundary,
-    image: &PhaseImage,
-    subvoxel: Option<grainpipe_core::subvoxel::Subvoxel>,
-    ctx: &RunContext,
-) -> (
-    Option<PhaseImage>,
-    Option<grainpipe_core::subvoxel::Subvoxel>,
-) {
-    if bc.voxel_factor() == 1 {
-        return (None, subvoxel);
-    }
-    let cell = mirror_image(image, bc.mirror);
-    let [x, y, z] = cell.grid.dims;
-    ctx.info(&format!(
-        "boundary: mirror: the image reflected across {} ({x}x{y}x{z} voxels)",
-        grainpipe_core::boundary::axis_list(bc.mirror)
-    ));
-    let sv = subvoxel.map(|sv| mirror_subvoxel(&sv, image.grid.dims, bc.mirror));
-    (Some(cell), sv)
 }
 
 /// The mirrored cell's result on the input's grid: the fields cropped to the input's voxels
