@@ -346,7 +346,13 @@ pub fn parse_age(text: &str) -> Result<Duration, String> {
             ))
         }
     };
-    Ok(Duration::from_secs_f64(n * s))
+    // An age beyond what `Duration` holds (about 5.8e11 years) would panic in
+    // `from_secs_f64`; it means "older than anything", so it is capped, not refused.
+    let seconds = n * s;
+    if !seconds.is_finite() {
+        return Err(format!("`{text}` is not a finite age"));
+    }
+    Ok(Duration::try_from_secs_f64(seconds).unwrap_or(Duration::MAX))
 }
 
 /// What `pipe cache` prints: the directory, the number of entries, their total size, and
@@ -521,6 +527,14 @@ mod tests {
         assert_eq!(parse_size("2GB").unwrap(), 2_000_000_000);
         assert_eq!(parse_size("500 MiB").unwrap(), 500 * 1024 * 1024);
         assert_eq!(parse_size("1.5k").unwrap(), 1536);
+        // u64::MAX seconds overflowed Duration::from_secs_f64 (a panic, exit 101).
+        assert_eq!(
+            parse_age("18446744073709551615s").unwrap(),
+            Duration::MAX,
+            "a huge age is 'older than anything'"
+        );
+        assert_eq!(parse_age("2d").unwrap(), Duration::from_secs(172_800));
+        assert!(parse_age("1e400s").is_err());
         assert!(parse_size("2 parsecs").unwrap_err().contains("parsecs"));
         assert_eq!(parse_age("7d").unwrap(), Duration::from_secs(7 * 86400));
         assert_eq!(parse_age("90s").unwrap(), Duration::from_secs(90));

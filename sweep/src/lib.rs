@@ -227,8 +227,12 @@ pub fn sweep_command(
                 return fail(2, e);
             }
             match runner::run_one(&dir, &id, registry, load_plugins) {
-                Ok(r) if r.status == "ok" => ExitCode::SUCCESS,
-                Ok(r) => fail(1, format!("run {id}: {}", r.error)),
+                Ok(Some(r)) if r.status == "ok" => ExitCode::SUCCESS,
+                Ok(Some(r)) => fail(1, format!("run {id}: {}", r.error)),
+                Ok(None) => fail(
+                    runner::EXIT_RUN_BUSY,
+                    format!("run {id} is being computed by another process; not run twice"),
+                ),
                 Err(e) => fail(2, e),
             }
         }
@@ -242,8 +246,12 @@ pub fn sweep_command(
             };
             eprintln!("slurm task: run {id}");
             match runner::run_one(&dir, &id, registry, load_plugins) {
-                Ok(r) if r.status == "ok" => ExitCode::SUCCESS,
-                Ok(r) => fail(1, format!("run {id}: {}", r.error)),
+                Ok(Some(r)) if r.status == "ok" => ExitCode::SUCCESS,
+                Ok(Some(r)) => fail(1, format!("run {id}: {}", r.error)),
+                Ok(None) => fail(
+                    runner::EXIT_RUN_BUSY,
+                    format!("run {id} is being computed by another process; not run twice"),
+                ),
                 Err(e) => fail(2, e),
             }
         }
@@ -316,6 +324,7 @@ pub fn prepare(
             return Err(fail(2, format!("--vary `{}` is given twice", v.key)));
         }
     }
+    spec::run_count(&vary, a.realizations).map_err(|e| fail(2, e))?;
     let collect = a
         .collect
         .iter()
@@ -358,7 +367,7 @@ pub fn prepare(
         rve: a.rve.spec(),
         runs: spec::runs(&vary, a.realizations, base_seed),
     };
-    let (point_memory, errors) = preflight_points(&m, &dir, registry, &collect);
+    let (point_memory, errors) = preflight_points(&m, &dir, registry, &collect, !a.quiet);
     if !errors.is_empty() {
         let points = point_memory.len();
         eprintln!(
@@ -435,11 +444,25 @@ pub fn preflight_points(
     dir: &Path,
     registry: &Registry,
     collect: &[spec::CollectSpec],
+    show_progress: bool,
 ) -> (Vec<u64>, Vec<(String, String)>) {
     let limit = spec::available_memory();
     let mut errors: Vec<(String, String)> = Vec::new();
     let mut point_memory: Vec<u64> = Vec::new();
+    let points = m.runs.iter().filter(|r| r.realization == 0).count();
+    // Thousands of points take seconds to minutes to preflight: say so instead of going silent.
+    let bar = if show_progress && points >= 1000 {
+        indicatif::ProgressBar::new(points as u64).with_style(
+            indicatif::ProgressStyle::with_template(
+                "preflight of the parameter points {pos}/{len} [{bar:30}] eta {eta}",
+            )
+            .expect("a valid template"),
+        )
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
     for r in m.runs.iter().filter(|r| r.realization == 0) {
+        bar.inc(1);
         let planned = run_doc(m, r, dir).and_then(|d| plan_run(&d, registry, collect, limit));
         match planned {
             Ok(p) => point_memory.push(p.memory_bytes),
@@ -454,6 +477,7 @@ pub fn preflight_points(
             }
         }
     }
+    bar.finish_and_clear();
     (point_memory, errors)
 }
 

@@ -54,6 +54,88 @@ pub fn save_result(dir: &Path, r: &RunResult) -> Result<(), String> {
     grainpipe_core::fsutil::atomic_write_bytes(&result_path(dir, &r.id), text.as_bytes())
 }
 
+/// The lock a run holds while it computes: `DIR/runs/<id>/.running`, an advisory lock
+/// (flock) held by the process that runs it. The kernel releases it when that process ends,
+/// however it ends, so a held lock means a live run.
+pub fn running_lock_path(dir: &Path, id: &str) -> PathBuf {
+    run_dir(dir, id).join(".running")
+}
+
+/// Takes the run's lock: `Ok(None)` when another live process holds it (the run is being
+/// computed elsewhere, e.g. by a runner that was killed but whose child still finishes, or
+/// a second `pipe sweep` resuming the same directory).
+pub fn lock_run(dir: &Path, id: &str) -> Result<Option<std::fs::File>, String> {
+    let path = running_lock_path(dir, id);
+    std::fs::create_dir_all(run_dir(dir, id))
+        .map_err(|e| format!("{}: {e}", run_dir(dir, id).display()))?;
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(|e| format!("{}: {e}", path.display()))?;
+    if try_lock_exclusive(&file).map_err(|e| format!("{}: {e}", path.display()))? {
+        Ok(Some(file))
+    } else {
+        Ok(None)
+    }
+}
+
+/// flock(LOCK_EX | LOCK_NB): `Ok(false)` when another open file description holds the lock.
+/// (`File::try_lock` does the same from Rust 1.89, above this workspace's minimum version.)
+#[cfg(target_os = "linux")]
+fn try_lock_exclusive(file: &std::fs::File) -> std::io::Result<bool> {
+    use std::os::fd::AsRawFd;
+    // SAFETY: flock on a descriptor this function borrows for the duration of the call.
+    if unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) } == 0 {
+        return Ok(true);
+    }
+    let e = std::io::Error::last_os_error();
+    if e.kind() == std::io::ErrorKind::WouldBlock {
+        Ok(false)
+    } else {
+        Err(e)
+    }
+}
+
+/// Elsewhere runs are not locked (the local executor and Slurm tasks target Linux).
+#[cfg(not(target_os = "linux"))]
+fn try_lock_exclusive(_: &std::fs::File) -> std::io::Result<bool> {
+    Ok(true)
+}
+
+/// The exit code of a `run-one` child that found its run already running elsewhere
+/// (EX_TEMPFAIL): it leaves no result, and the runner records none.
+pub const EXIT_RUN_BUSY: u8 = 75;
+
+/// Makes a child process die with the runner (Linux: PR_SET_PDEATHSIG), so that killing a
+/// sweep (SIGTERM, SIGKILL, or SIGINT sent to the runner alone) does not leave its runs
+/// computing unseen. The signal fires when the spawning thread ends: the runner's worker
+/// thread waits for its child, so that is when the runner dies.
+fn die_with_parent(command: &mut Command) {
+    #[cfg(target_os = "linux")]
+    {
+        use std::os::unix::process::CommandExt;
+        let parent = std::process::id() as libc::pid_t;
+        // SAFETY: the closure runs between fork and exec and calls only async-signal-safe
+        // functions (prctl, getppid, _exit); it allocates nothing.
+        unsafe {
+            command.pre_exec(move || {
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                // The runner may have died between fork and prctl: then nobody waits for us.
+                if libc::getppid() != parent {
+                    libc::_exit(1);
+                }
+                Ok(())
+            });
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = command;
+}
+
 /// Peak resident set size of this process (VmHWM of /proc/self/status) [bytes]; 0 elsewhere.
 pub fn peak_rss() -> u64 {
     std::fs::read_to_string("/proc/self/status")
@@ -150,19 +232,24 @@ pub fn collect_values(
 }
 
 /// Runs one run of a sweep in this process and writes its `result.json` (also when it fails).
-/// Returns the result.
+/// Returns the result, or `None` (writing nothing) when the run is already being computed
+/// by another live process.
 pub fn run_one(
     dir: &Path,
     id: &str,
     registry: &mut Registry,
     load_plugins: &mut PluginLoad,
-) -> Result<RunResult, String> {
+) -> Result<Option<RunResult>, String> {
     let start = Instant::now();
     let m = Manifest::load(dir)?;
     let run = m
         .run(id)
         .ok_or_else(|| format!("{}: no run `{id}`", Manifest::path(dir).display()))?
         .clone();
+    // Held until this function returns (and released by the kernel if the process dies).
+    let Some(_running) = lock_run(dir, id)? else {
+        return Ok(None);
+    };
     let outcome = execute_run(&m, &run, dir, registry, load_plugins);
     let (status, error, values) = match outcome {
         Ok(v) => ("ok", String::new(), v),
@@ -178,7 +265,7 @@ pub fn run_one(
         values,
     };
     save_result(dir, &r)?;
-    Ok(r)
+    Ok(Some(r))
 }
 
 fn execute_run(
@@ -243,6 +330,8 @@ struct Shared {
     running: usize,
     done: usize,
     failed: usize,
+    /// Runs found computing in another live process (not run here, no result written).
+    busy: usize,
 }
 
 /// Runs `todo` (indices into the manifest's runs) as child processes; every run ends with a
@@ -262,6 +351,7 @@ pub fn run_local(
         running: 0,
         done: 0,
         failed: 0,
+        busy: 0,
     });
     let freed = Condvar::new();
     let t0 = Instant::now();
@@ -293,11 +383,24 @@ pub fn run_local(
                     s.running_memory += run.memory_bytes;
                     run
                 };
-                let r = run_child(dir, run, launch);
+                let outcome = run_child(dir, run, launch);
                 let mut s = shared.lock().expect("lock");
                 s.running -= 1;
                 s.running_memory -= run.memory_bytes;
                 s.done += 1;
+                let Some(r) = outcome else {
+                    s.busy += 1;
+                    if !opts.quiet {
+                        eprintln!(
+                            "[{}/{total}] {} is running in another process: skipped (its result \
+                             appears when that process ends)",
+                            s.done, run.id
+                        );
+                    }
+                    drop(s);
+                    freed.notify_all();
+                    continue;
+                };
                 if r.status != "ok" {
                     s.failed += 1;
                 }
@@ -330,8 +433,16 @@ pub fn run_local(
 }
 
 /// Runs one child and returns its result; a child that died without writing one gets a failed
-/// result naming its exit status and the end of its log.
-fn run_child(dir: &Path, run: &RunSpec, launch: &Launcher) -> RunResult {
+/// result naming its exit status and the end of its log. `None` when the run is computing in
+/// another live process (its lock is held): nothing is started, its files are left alone.
+fn run_child(dir: &Path, run: &RunSpec, launch: &Launcher) -> Option<RunResult> {
+    // Checked before touching the run's files; the child takes the lock itself (and exits
+    // with EXIT_RUN_BUSY if another process won it in between).
+    match lock_run(dir, &run.id) {
+        Ok(Some(lock)) => drop(lock),
+        Ok(None) => return None,
+        Err(_) => {} // the child reports the same error in its result
+    }
     let rdir = run_dir(dir, &run.id);
     let _ = std::fs::remove_file(result_path(dir, &run.id));
     let t = Instant::now();
@@ -340,10 +451,15 @@ fn run_child(dir: &Path, run: &RunSpec, launch: &Launcher) -> RunResult {
         .and_then(|_| std::fs::File::create(&log))
         .and_then(|f| {
             let f2 = f.try_clone()?;
-            launch(dir, &run.id).stdout(f).stderr(f2).status()
+            let mut command = launch(dir, &run.id);
+            die_with_parent(&mut command);
+            command.stdout(f).stderr(f2).status()
         });
     if let Some(r) = load_result(dir, &run.id) {
-        return r;
+        return Some(r);
+    }
+    if matches!(&spawned, Ok(st) if st.code() == Some(i32::from(EXIT_RUN_BUSY))) {
+        return None;
     }
     let why = match spawned {
         Ok(st) => format!("the run's process ended with {st} without a result"),
@@ -369,7 +485,7 @@ fn run_child(dir: &Path, run: &RunSpec, launch: &Launcher) -> RunResult {
         values: Vec::new(),
     };
     let _ = save_result(dir, &r);
-    r
+    Some(r)
 }
 
 pub fn human_duration(s: f64) -> String {

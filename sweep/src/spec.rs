@@ -3,6 +3,7 @@
 //! every run (local child process or Slurm array task) reads.
 
 use grainpipe_core::engine::{self, PlanOptions};
+use grainpipe_core::model::ArtifactKind;
 use grainpipe_core::pipeline::{PipelineDoc, PipelineError};
 use grainpipe_core::Registry;
 use serde::{Deserialize, Serialize};
@@ -45,7 +46,21 @@ fn range(s: &str) -> Option<Result<Vec<String>, String>> {
     if parts.len() != 3 {
         return None;
     }
-    let n: usize = parts[2].trim().parse().ok()?;
+    // `0:1:1e3` is as much a count as `0:1:1000`; a count is checked before any value is
+    // made (`0:1:1e9` used to allocate a billion strings and abort).
+    let n: f64 = parts[2].trim().parse().ok()?;
+    if n.fract() != 0.0 || n < 0.0 {
+        return Some(Err(format!(
+            "range `{s}`: the count `{}` is not a whole number",
+            parts[2].trim()
+        )));
+    }
+    if n > MAX_RUNS as f64 {
+        return Some(Err(format!(
+            "range `{s}`: {n:e} values; a sweep holds at most {MAX_RUNS} runs (split it into several sweeps)"
+        )));
+    }
+    let n = n as usize;
     let split = |t: &str| -> Option<(f64, String)> {
         let t = t.trim();
         let end = t
@@ -211,6 +226,33 @@ pub fn realization_seed(base: u64, r: usize) -> u64 {
     grainpipe_core::derive_seed(base, &label) >> 1
 }
 
+/// The most runs one sweep plans (points x realizations). Every point is preflighted before
+/// anything runs (~0.4 ms each) and every run gets a folder, a manifest entry and a table
+/// row; beyond this a sweep is better split (Slurm's default MaxArraySize is 1001).
+pub const MAX_RUNS: usize = 100_000;
+
+/// The number of runs of a sweep, or why it is refused: checked products, so that
+/// `--realizations 1000000000000` is an error with the number instead of an allocation abort.
+pub fn run_count(vary: &[Vary], realizations: usize) -> Result<usize, String> {
+    let points = vary
+        .iter()
+        .try_fold(1usize, |acc, v| acc.checked_mul(v.values.len()));
+    let total = points.and_then(|p| p.checked_mul(realizations));
+    match total {
+        Some(n) if n <= MAX_RUNS => Ok(n),
+        _ => {
+            let points: f64 = vary.iter().map(|v| v.values.len() as f64).product();
+            Err(format!(
+                "{points} parameter point{} x {realizations} realization{} = {:e} runs; a sweep \
+                 holds at most {MAX_RUNS} (split it into several sweeps, or fewer values)",
+                if points == 1.0 { "" } else { "s" },
+                if realizations == 1 { "" } else { "s" },
+                points * realizations as f64,
+            ))
+        }
+    }
+}
+
 /// The run list: every combination of the varied values (the last `--vary` fastest) times
 /// the realizations.
 pub fn runs(vary: &[Vary], realizations: usize, base_seed: u64) -> Vec<RunSpec> {
@@ -316,6 +358,35 @@ pub fn plan_run(
                         .unwrap_or_else(|| format!("its outputs are: {}", outs.join(", "))),
                 )));
             }
+            // Only tables and tensors have values to put in the sweep table; refusing an image
+            // here, before any run, saves computing every run to fail at the collect.
+            let info = reg.stage.info();
+            if let Some(port) = info.outputs.iter().find(|p| p.name == c.port) {
+                if !matches!(port.kind, ArtifactKind::Table | ArtifactKind::Tensor) {
+                    let collectable: Vec<&str> = info
+                        .outputs
+                        .iter()
+                        .filter(|p| matches!(p.kind, ArtifactKind::Table | ArtifactKind::Tensor))
+                        .map(|p| p.name)
+                        .collect();
+                    return Err(cli(format!(
+                        "--collect `{}.{}`: a {} has no values to collect (collect a table or a tensor)",
+                        c.step, c.port, port.kind
+                    ))
+                    .with_help(Some(if collectable.is_empty() {
+                        format!("step `{}` ({}) outputs no table or tensor", c.step, step.uses)
+                    } else {
+                        format!(
+                            "its tables and tensors: {}",
+                            collectable
+                                .iter()
+                                .map(|p| format!("{}.{p}", c.step))
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        )
+                    })));
+                }
+            }
         }
     }
     let mut targets: Vec<String> = collect.iter().map(|c| c.step.clone()).collect();
@@ -358,6 +429,14 @@ mod tests {
         let v = parse_vary("pack.size=[1, 2],[3, 4]").unwrap();
         assert_eq!(v.values, ["[1, 2]", "[3, 4]"]);
         assert!(parse_vary("volume_fraction=1,2").is_err());
+        let v = parse_vary("a.b=0:1:1e1").unwrap();
+        assert_eq!(v.values.len(), 10, "a count in exponent form");
+        // Refused with the number, before any value is made.
+        let e = parse_vary("a.b=0:1:1e9").unwrap_err();
+        assert!(e.contains("1e9") && e.contains("100000"), "{e}");
+        assert!(parse_vary("a.b=0:1:2.5")
+            .unwrap_err()
+            .contains("whole number"));
         assert!(parse_vary("a.b=1um:2mm:3")
             .unwrap_err()
             .contains("same unit"));
@@ -380,6 +459,12 @@ mod tests {
         assert_eq!(r[1].seed, r[11].seed);
         assert_ne!(r[0].seed, r[1].seed);
         assert!(r.iter().all(|x| x.seed < 1 << 63));
+        assert_eq!(run_count(&vary, 2), Ok(12));
+        // The count is checked without overflow or allocation.
+        let e = run_count(&vary, 1_000_000_000_000).unwrap_err();
+        assert!(e.contains("6e12 runs") && e.contains("100000"), "{e}");
+        let e = run_count(&vary, usize::MAX).unwrap_err();
+        assert!(e.contains("runs"), "{e}");
         assert_ne!(realization_seed(43, 0), realization_seed(42, 0));
     }
 }

@@ -92,6 +92,16 @@ pub struct Analysis {
     pub chosen: Option<usize>,
 }
 
+/// A level's error in the study table. Without an extrapolation the finest level is the
+/// reference and has no error of its own (it printed "NaN%").
+fn error_cell(error: f64) -> String {
+    if error.is_finite() {
+        format!("{:>9.3}%", 100.0 * error)
+    } else {
+        format!("{:>10}", "reference")
+    }
+}
+
 /// Analyses levels (given coarse to fine): values as text, metric values, costs.
 pub fn analyse(
     values: &[String],
@@ -124,6 +134,12 @@ pub fn analyse(
         }
     };
     let n = x.len();
+    if let Some(k) = metric.iter().position(|m| !m.is_finite()) {
+        return Err(format!(
+            "study level `{}` gave a non-finite metric ({}): no error can be estimated",
+            values[k], metric[k]
+        ));
+    }
     let finest = metric[n - 1];
     let rich = richardson(&h, metric);
     let rel = |a: f64, b: f64| (a - b).abs() / b.abs();
@@ -366,13 +382,13 @@ pub fn study_command(
                 "level", "metric", "wall [s]", "memory", "error"
             );
             for l in &a.levels {
+                let error = error_cell(l.error);
                 println!(
-                    "{:>14} {:>14.6e} {:>10.2} {:>12} {:>9.3}%{}",
+                    "{:>14} {:>14.6e} {:>10.2} {:>12} {error}{}",
                     l.value,
                     l.metric,
                     l.wall_time,
                     grainpipe_core::engine::human_bytes(l.peak_memory as u64),
-                    100.0 * l.error,
                     if l.pareto { "  pareto" } else { "" }
                 );
             }
@@ -414,6 +430,18 @@ mod tests {
         assert!((lim - 1.0).abs() < 1e-9, "{lim}");
         // Oscillating values: no extrapolation.
         assert!(richardson(&[4.0, 2.0, 1.0], &[1.0, 1.2, 1.1]).is_none());
+    }
+
+    #[test]
+    fn the_reference_level_has_no_error_printed_as_nan() {
+        let values: Vec<String> = ["4um", "2um", "1um"].map(String::from).to_vec();
+        // Oscillating: no extrapolation, errors against the finest level.
+        let a = analyse(&values, &[1.0, 1.2, 1.1], &[1.0; 3], &[1.0; 3], None).unwrap();
+        assert!(a.richardson.is_none());
+        assert_eq!(error_cell(a.levels[2].error).trim(), "reference");
+        assert_eq!(error_cell(a.levels[0].error).trim(), "9.091%");
+        let e = analyse(&values, &[1.0, f64::NAN, 1.1], &[1.0; 3], &[1.0; 3], None).unwrap_err();
+        assert!(e.contains("`2um`") && e.contains("non-finite"), "{e}");
     }
 
     #[test]

@@ -73,12 +73,58 @@ impl TypedStage for SlicedSphere {
     }
 }
 
+/// A run that takes `seconds` of wall time (and checks for interruption while it waits): the
+/// live child that the process tests kill.
+#[params]
+struct WaitParams {
+    /// how long to wait [s]
+    #[param(default = 1.0)]
+    seconds: f64,
+}
+
+struct Wait;
+
+impl TypedStage for Wait {
+    type Params = WaitParams;
+    type Plan = ();
+    fn info(&self) -> StageInfo {
+        StageInfo::new("test.wait", "1.0.0", "Test stage: waits.").outputs(vec![PortSpec::new(
+            "report",
+            ArtifactKind::Table,
+            "waited",
+        )])
+    }
+    fn preflight(&self, _: &WaitParams, _: &InputMetas) -> Result<Preflight, StageError> {
+        Ok(Preflight::from_info(&self.info(), 1024)
+            .announce("report", ArtifactMeta::of(ArtifactKind::Table)))
+    }
+    fn run(
+        &self,
+        p: &WaitParams,
+        _: &(),
+        _: &Inputs,
+        _: &RunContext,
+    ) -> Result<Outputs, StageError> {
+        let t = std::time::Instant::now();
+        while t.elapsed().as_secs_f64() < p.seconds {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let mut o = Outputs::new();
+        o.insert(
+            "report".into(),
+            Artifact::Table(Table::new("w").with_f64("seconds", "s", vec![p.seconds])),
+        );
+        Ok(o)
+    }
+}
+
 fn registry() -> Registry {
     let mut r = Registry::new();
     grainpipe_formats::register(&mut r);
     grainpipe_geometry::register(&mut r);
     grainpipe_analysis::register(&mut r);
     r.add_stage(SlicedSphere);
+    r.add_stage(Wait);
     r
 }
 
@@ -89,8 +135,22 @@ fn child_entry() {
         return;
     };
     let mut reg = registry();
-    let r = runner::run_one(Path::new(&dir), &id, &mut reg, &mut |_, _| Ok(())).unwrap();
-    std::process::exit(if r.status == "ok" { 0 } else { 1 });
+    match runner::run_one(Path::new(&dir), &id, &mut reg, &mut |_, _| Ok(())).unwrap() {
+        Some(r) => std::process::exit(if r.status == "ok" { 0 } else { 1 }),
+        None => std::process::exit(i32::from(runner::EXIT_RUN_BUSY)),
+    }
+}
+
+#[test]
+#[ignore = "the runner process of `a_killed_runner_takes_its_runs_with_it`"]
+fn runner_entry() {
+    let Ok(dir) = std::env::var("GP_RUNNER_DIR") else {
+        return;
+    };
+    let dir = Path::new(&dir);
+    let m = Manifest::load(dir).unwrap();
+    let todo: Vec<usize> = (0..m.runs.len()).collect();
+    runner::run_local(dir, &m, &todo, &opts(1, None), &launcher());
 }
 
 fn launcher() -> impl Fn(&Path, &str) -> Command + Sync {
@@ -300,6 +360,119 @@ fn sweep_runs_once_resumes_and_records_failures() {
 
 /// Every parameter point is preflighted before anything runs and every invalid point is
 /// reported, with the did-you-mean help of `--set`.
+const WAIT_PIPELINE: &str = "name: wait
+seed: 3
+stages:
+  - id: wait
+    use: test.wait
+    with: { seconds: 120 }
+";
+
+fn wait_sweep(dir: &Path, realizations: usize) -> grainpipe_sweep::Prepared {
+    let file = dir.join("wait.yaml");
+    std::fs::write(&file, WAIT_PIPELINE).unwrap();
+    let a = SetupArgs {
+        file: Some(file),
+        realizations,
+        collect: vec!["wait.report.seconds".into()],
+        out: Some(dir.join("sweep")),
+        no_cache: true,
+        quiet: true,
+        ..Default::default()
+    };
+    prepare(&a, &mut registry(), &mut |_, _| Ok(())).unwrap()
+}
+
+fn wait_until(what: &str, limit_s: f64, mut done: impl FnMut() -> bool) {
+    let t = std::time::Instant::now();
+    while !done() {
+        assert!(
+            t.elapsed().as_secs_f64() < limit_s,
+            "{what}: not within {limit_s} s"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
+
+/// Issue 35: a sweep killed with SIGKILL used to leave its `run-one` child computing, and a
+/// resume then ran the same id twice at once. The child now dies with its runner (parent-death
+/// signal), which the run's lock shows: held while the child lives, free once it is gone.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_killed_runner_takes_its_runs_with_it() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = wait_sweep(tmp.path(), 1);
+    let id = p.manifest.runs[0].id.clone();
+    let mut runner = Command::new(std::env::current_exe().unwrap())
+        .args(["runner_entry", "--exact", "--ignored", "--test-threads=1"])
+        .env("GP_RUNNER_DIR", &p.dir)
+        .stdout(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // The child holds the run's lock while it computes (a 120 s wait).
+    wait_until("the child takes the run's lock", 60.0, || {
+        runner::lock_run(&p.dir, &id).unwrap().is_none()
+    });
+    runner.kill().unwrap(); // SIGKILL: no handler in the runner can help
+    runner.wait().unwrap();
+    wait_until("the child dies with its runner", 10.0, || {
+        runner::lock_run(&p.dir, &id).unwrap().is_some()
+    });
+    assert!(
+        runner::load_result(&p.dir, &id).is_none(),
+        "a killed run leaves no result, so a resume runs it again"
+    );
+}
+
+/// A resume never starts a run that a live process is computing: it is skipped, and neither its
+/// result nor its files are touched.
+#[test]
+fn a_resume_skips_a_run_that_is_still_computing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let p = wait_sweep(tmp.path(), 2);
+    // Realization 0 is "computing" in another process (this test holds its lock); realization
+    // 1 is quick.
+    let quick = std::fs::read_to_string(&p.manifest.pipeline)
+        .unwrap()
+        .replace("seconds: 120", "seconds: 0.01");
+    std::fs::write(&p.manifest.pipeline, quick).unwrap();
+    let mut m = p.manifest.clone();
+    m.pipeline_blake3 = grainpipe_core::fsutil::content_hash(&m.pipeline).unwrap();
+    m.save(&p.dir).unwrap();
+    let busy = &m.runs[0].id;
+    let lock = runner::lock_run(&p.dir, busy)
+        .unwrap()
+        .expect("free at first");
+    std::fs::write(
+        runner::run_dir(&p.dir, busy).join("log.txt"),
+        "the other process's log",
+    )
+    .unwrap();
+    let (done, failed) = runner::run_local(&p.dir, &m, &[0, 1], &opts(2, None), &launcher());
+    assert_eq!((done, failed), (2, 0));
+    assert!(
+        runner::load_result(&p.dir, busy).is_none(),
+        "not run, no result"
+    );
+    assert_eq!(
+        std::fs::read_to_string(runner::run_dir(&p.dir, busy).join("log.txt")).unwrap(),
+        "the other process's log",
+        "the live run's files are left alone"
+    );
+    assert_eq!(
+        runner::load_result(&p.dir, &m.runs[1].id).unwrap().status,
+        "ok"
+    );
+    // The child itself refuses too (a race between two runners): exit 75, no result.
+    let status = launcher()(&p.dir, busy).status().unwrap();
+    assert_eq!(status.code(), Some(i32::from(runner::EXIT_RUN_BUSY)));
+    assert!(runner::load_result(&p.dir, busy).is_none());
+    drop(lock);
+    let (done, failed) = runner::run_local(&p.dir, &m, &[0], &opts(1, None), &launcher());
+    assert_eq!((done, failed), (1, 0));
+    assert_eq!(runner::load_result(&p.dir, busy).unwrap().status, "ok");
+}
+
 #[test]
 fn invalid_points_are_all_reported_before_running() {
     let tmp = tempfile::tempdir().unwrap();
@@ -327,7 +500,7 @@ fn invalid_points_are_all_reported_before_running() {
         rve: None,
         runs: spec::runs(&vary, 3, 7),
     };
-    let (mem, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[]);
+    let (mem, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[], false);
     assert_eq!(mem.len(), 4);
     assert_eq!(errors.len(), 2, "{errors:?}");
     assert!(errors[0].0.contains("1.5") && errors[1].0.contains("2.0"));
@@ -339,7 +512,7 @@ fn invalid_points_are_all_reported_before_running() {
         vary,
         ..m
     };
-    let (_, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[]);
+    let (_, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[], false);
     assert_eq!(errors.len(), 2);
     assert!(
         errors[0].1.contains("did you mean `volume_fraction`"),
@@ -348,9 +521,17 @@ fn invalid_points_are_all_reported_before_running() {
     );
     // A bad --collect port, with a suggestion.
     let c = spec::parse_collect("voxels.reprt.image_fraction").unwrap();
-    let (_, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[c]);
+    let (_, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[c], false);
     assert!(
         errors[0].1.contains("did you mean `voxels.report`"),
+        "{}",
+        errors[0].1
+    );
+    // An image cannot be collected: refused at preflight (it used to fail after every run).
+    let c = spec::parse_collect("voxels.image").unwrap();
+    let (_, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[c], false);
+    assert!(
+        errors[0].1.contains("no values to collect") && errors[0].1.contains("voxels.report"),
         "{}",
         errors[0].1
     );
