@@ -31,6 +31,28 @@ impl Grid {
         }
     }
 
+    /// Refuses a voxel that does not fit in the box along some axis: [`Grid::tiling`] would
+    /// make that axis one voxel wide and stretch it to the box, an image with nothing of the
+    /// geometry in it (a 1 mm voxel on a 400 um box gave solid fraction 0 against 0.30).
+    pub fn check_tiling(min: [f64; 3], max: [f64; 3], voxel: f64) -> Result<(), String> {
+        for a in 0..3 {
+            let size = max[a] - min[a];
+            // 1e-9: a box of exactly one voxel, up to rounding, is fine.
+            if voxel > size * (1.0 + 1e-9) {
+                return Err(format!(
+                    "the voxel ({}) is larger than the box along {} ({}): the image would be \
+                     one voxel across; use a voxel of at most {} (box / 20 = {} gives 20 voxels)",
+                    crate::units::format_length(voxel),
+                    ["x", "y", "z"][a],
+                    crate::units::format_length(size),
+                    crate::units::format_length(size),
+                    crate::units::format_length(size / 20.0),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     /// Number of voxels. Saturates at `usize::MAX` instead of wrapping, so dims read from a
     /// file or a plugin that overflow give an impossible memory estimate (refused) and a
     /// length that no array matches, never a small wrapped count that passes size checks.

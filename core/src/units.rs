@@ -195,6 +195,29 @@ fn parse_product(t: &[String], pos: &mut usize, expr: &str) -> Result<(f64, Dime
     Ok((factor, dim))
 }
 
+/// A length for messages, in the unit that keeps it between 1 and 1000 (`400 um`, `1 mm`),
+/// with 4 significant digits; the text parses back with [`parse_quantity`].
+pub fn format_length(metres: f64) -> String {
+    if !metres.is_finite() || metres == 0.0 {
+        return format!("{metres} m");
+    }
+    let (scale, unit) = match metres.abs() {
+        x if x >= 1.0 => (1.0, "m"),
+        x if x >= 1e-3 => (1e-3, "mm"),
+        x if x >= 1e-6 => (1e-6, "um"),
+        _ => (1e-9, "nm"),
+    };
+    let v = metres / scale;
+    let digits = (3 - v.abs().log10().floor() as i32).clamp(0, 3) as usize;
+    let text = format!("{v:.digits$}");
+    let text = if text.contains('.') {
+        text.trim_end_matches('0').trim_end_matches('.').to_string()
+    } else {
+        text
+    };
+    format!("{text} {unit}")
+}
+
 /// Parses `"<number> <unit>"` (or a bare number, which is dimensionless).
 pub fn parse_quantity(text: &str) -> Result<Quantity, String> {
     let s = text.trim();
@@ -342,6 +365,11 @@ pub type LengthQ = Q<Length>;
 /// order E^2 head for the f64 overflow.
 pub const MAX_MODULUS: f64 = 1e15;
 
+/// Smallest elastic modulus the solvers accept: 1 Pa, a thousand times softer than the softest
+/// gels. Below it the value is a unit slip, and near the f64 subnormals (E = 5e-324) the
+/// derived Lame constants underflow to zero: the solid would be taken for pore.
+pub const MIN_MODULUS: f64 = 1.0;
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -385,6 +413,15 @@ mod tests {
         assert!(e.to_string().contains("takes m"), "{e}");
         assert!(parse_quantity("3 furlongs").is_err());
         assert!(parse_quantity("um").is_err());
+        assert_eq!(format_length(4e-4), "400 um");
+        assert_eq!(format_length(1e-3), "1 mm");
+        assert_eq!(format_length(2.5e-5), "25 um");
+        assert_eq!(format_length(1.234567e-5), "12.35 um");
+        assert_eq!(format_length(3.0), "3 m");
+        for x in [4e-4, 1.234567e-5, 7.5e-8, 0.02] {
+            let back = parse_quantity(&format_length(x)).unwrap().value;
+            assert!((back - x).abs() <= 1e-3 * x, "{x} -> {back}");
+        }
         let q: Q<Length> = serde_json::from_str("2.5e-6").unwrap();
         assert_eq!(q.si(), 2.5e-6);
     }

@@ -337,6 +337,12 @@ fn bad_csv_is_refused_in_preflight_with_file_and_line() {
         "x,y,z,r\n1e-4,1e-4,1e-4,1e-5\n1e-4,1e-4,1.5e-3,1e-5\n",
         ":3: centre z = 1.5e-3 m is outside the non-periodic box 0e0..1e-3 m",
     );
+    // Issue 35: a sphere wider than the box (an analytic solid fraction of 524 before).
+    case(
+        "huge.csv",
+        "x,y,z,r\n1e-4,1e-4,1e-4,1e-5\n5e-4,5e-4,5e-4,5e-4\n5e-4,5e-4,5e-4,6e-4\n",
+        ":4: a sphere of diameter 1.2 mm is wider than the box along x (1 mm)",
+    );
     case(
         "short.csv",
         "x,y,z,r\n1e-4,1e-4,1e-4\n",

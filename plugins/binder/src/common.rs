@@ -104,6 +104,15 @@ impl BinderImage {
         Ok(())
     }
 
+    /// The parameter that set the voxel: `voxel_size` when given, else `voxels_per_diameter`.
+    fn voxel_key(&self) -> &'static str {
+        if self.voxel_size.si() > 0.0 {
+            "voxel_size"
+        } else {
+            "voxels_per_diameter"
+        }
+    }
+
     fn voxel(&self, mean_diameter: f64) -> f64 {
         if self.voxel_size.si() > 0.0 {
             self.voxel_size.si()
@@ -125,15 +134,12 @@ impl BinderImage {
             return Ok((None, 0));
         }
         let v = self.voxel(scale.unwrap_or(0.0));
+        let key = self.voxel_key();
+        Grid::check_tiling(lo, hi, v).map_err(|m| StageError::param(key, m))?;
         let n: f64 = (0..3)
             .map(|a| ((hi[a] - lo[a]) / v).round().max(1.0))
             .product();
         if n > MAX_VOXELS {
-            let key = if self.voxel_size.si() > 0.0 {
-                "voxel_size"
-            } else {
-                "voxels_per_diameter"
-            };
             return Err(StageError::param(
                 key,
                 format!("{n:.3e} voxels: more than {MAX_VOXELS:.0e}; use a larger voxel"),
@@ -154,6 +160,7 @@ impl BinderImage {
         }
         let d = &packing.domain;
         let v = self.voxel(packing.mean_diameter());
+        Grid::check_tiling(d.min, d.max, v).map_err(|m| StageError::param(self.voxel_key(), m))?;
         let n: f64 = (0..3)
             .map(|a| ((d.max[a] - d.min[a]) / v).round().max(1.0))
             .product();

@@ -85,15 +85,37 @@ impl Bridge {
     }
 }
 
+/// A cement bridge spans a gap smaller than the particles it joins (the paper's l is the
+/// horizon, three voxels). `max_gap: 1` (1 m) joined every pair of the sample: minutes of
+/// search and a solid block instead of bridges. A gap wider than the largest particle's
+/// diameter is refused.
+fn check_gap(max_gap: f64, largest_radius: f64) -> Result<(), StageError> {
+    if max_gap > 2.0 * largest_radius {
+        return Err(StageError::param(
+            "max_gap",
+            format!(
+                "{} is wider than the largest particle ({} across): a cement bridge joins \
+                 near neighbours (the paper's l is the horizon, three voxels; leave max_gap out \
+                 for that)",
+                grainpipe_core::units::format_length(max_gap),
+                grainpipe_core::units::format_length(2.0 * largest_radius)
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Bridges between every pair of particles whose surface gap is at most `max_gap`
 /// (sec. II.B), pairs in increasing (i, j) order. Periodic partners are taken at their
-/// nearest image.
-pub fn find_bridges(
+/// nearest image. `poll(done, total)` is called every 1024 particles and may stop the search
+/// (an interrupt) by returning an error.
+pub fn find_bridges<E>(
     parts: &Particles,
     domain: &grainpipe_core::Domain,
     eta: f64,
     max_gap: f64,
-) -> Vec<Bridge> {
+    mut poll: impl FnMut(u64, u64) -> Result<(), E>,
+) -> Result<Vec<Bridge>, E> {
     let r_max = parts.radius.iter().cloned().fold(0.0, f64::max);
     let mut cells = CellList::new(
         domain.min,
@@ -107,6 +129,9 @@ pub fn find_bridges(
     let mut out = Vec::new();
     let mut near: Vec<(usize, [f64; 3])> = Vec::new();
     for i in 0..parts.len() {
+        if i % 1024 == 0 {
+            poll(i as u64, parts.len() as u64)?;
+        }
         let (ci, ri) = (parts.pos[i], parts.radius[i]);
         near.clear();
         cells.visit(ci, ri + r_max + max_gap, |j, shift| {
@@ -131,7 +156,7 @@ pub fn find_bridges(
             });
         }
     }
-    out
+    Ok(out)
 }
 
 /// The plan: the image grid when it is known before running.
@@ -280,6 +305,25 @@ impl TypedStage for Bridges {
             ),
             (None, None) => None,
         };
+        // Before the packing exists its particle sizes are unknown, but a gap wider than half
+        // the box is no bridge of any particle in it (the run checks the particles).
+        if let (Some(g), Some((lo, hi))) = (p.max_gap, up.and_then(|m| m.domain_box)) {
+            let half_box = 0.5
+                * (0..dim)
+                    .map(|a| hi[a] - lo[a])
+                    .fold(f64::INFINITY, f64::min);
+            if g.si() > half_box {
+                return Err(StageError::param(
+                    "max_gap",
+                    format!(
+                        "{} is wider than half the packing box ({}): a cement bridge joins \
+                         near neighbours (leave max_gap out for the paper's three voxels)",
+                        grainpipe_core::units::format_length(g.si()),
+                        grainpipe_core::units::format_length(half_box)
+                    ),
+                ));
+            }
+        }
         if let (Some(e), Some((lo, hi))) = (edge, up.and_then(|m| m.domain_box)) {
             for a in 0..dim {
                 if centre[a] - 0.5 * e < lo[a] - 1e-12 * e
@@ -358,7 +402,10 @@ impl TypedStage for Bridges {
         }
         let dx = grid.spacing[0];
         let max_gap = p.max_gap.map(|g| g.si()).unwrap_or(3.0 * dx);
-        let bridges = find_bridges(&parts, &pk.domain, p.eta, max_gap);
+        check_gap(max_gap, parts.radius.iter().cloned().fold(0.0, f64::max))?;
+        let bridges = find_bridges(&parts, &pk.domain, p.eta, max_gap, |_, _| {
+            ctx.check_cancelled()
+        })?;
         let (labels, counts) = rasterize(&parts, &bridges, &grid, p.supersampling as usize, ctx)?;
         let nvox = labels.len() as f64;
         let frac = |l: u8| labels.iter().filter(|&&x| x == l).count() as f64 / nvox;

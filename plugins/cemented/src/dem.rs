@@ -90,6 +90,11 @@ pub struct DemSpec {
     pub max_steps: u64,
 }
 
+/// Largest confining pressure accepted [Pa].
+pub const MAX_PRESSURE: f64 = 1e10;
+/// Largest k_n / P accepted (the paper's is 1e4).
+pub const MAX_STIFFNESS_RATIO: f64 = 1e8;
+
 impl CompactParams {
     pub fn spec(&self) -> Result<DemSpec, StageError> {
         let pos = |k: &str, v: f64| {
@@ -122,6 +127,29 @@ impl CompactParams {
             check_every: self.check_every,
             max_steps: self.max_steps,
         };
+        // The normal stiffness is stiffness_ratio x pressure: at 1e300 Pa the forces overflow
+        // and the run went on to max_steps with an infinite force ratio.
+        if s.pressure > MAX_PRESSURE {
+            return Err(StageError::param(
+                "pressure",
+                format!(
+                    "{:.3e} Pa is above {MAX_PRESSURE:.0e} Pa: grains crush far below it (sand at \
+                     10-100 MPa); check the unit (the paper's is 100 kPa)",
+                    s.pressure
+                ),
+            ));
+        }
+        if s.stiffness_ratio > MAX_STIFFNESS_RATIO {
+            return Err(StageError::param(
+                "stiffness_ratio",
+                format!(
+                    "{:.3e} is above {MAX_STIFFNESS_RATIO:.0e}: the time step (sqrt(m/k_n)) \
+                     becomes too small to compact in max_steps, and beyond it the forces lose \
+                     their digits",
+                    s.stiffness_ratio
+                ),
+            ));
+        }
         if s.stiffness_ratio < 100.0 {
             return Err(StageError::param(
                 "stiffness_ratio",
@@ -467,7 +495,7 @@ pub fn compact(
         if step % s.check_every == 0 {
             let stress_ok = (0..axes)
                 .all(|a| (stress[a] - s.pressure).abs() <= s.stress_tolerance * s.pressure);
-            let (unb, _, _) = unbalanced(
+            let (unb, mean_net, mean_contact) = unbalanced(
                 &force, &start, &entries, &pairs, &x, r, &centre, &half, axes,
             );
             // Dashpot forces must be negligible too: the state is at rest, not sliding.
@@ -481,6 +509,10 @@ pub fn compact(
             }
             if x.iter().any(|c| c.iter().any(|v| !v.is_finite()))
                 || half.iter().any(|h| !h.is_finite())
+                // (the ratio itself is infinite while no contact carries force)
+                || unb.is_nan()
+                || !(mean_net.is_finite() && mean_contact.is_finite())
+                || stress.iter().any(|v| !v.is_finite())
             {
                 return Err(DemError::Diverged(step));
             }

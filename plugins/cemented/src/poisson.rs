@@ -54,7 +54,7 @@ pub struct PoissonDiskParams {
     #[param(default = 0.02)]
     pub theta_tolerance: f64,
     /// Samplings tried while calibrating the gap before the stage fails.
-    #[param(default = 40)]
+    #[param(default = 40, ty = "integer 1..200")]
     pub max_calibrations: u32,
     /// Work limit: refuse boxes that would hold more particles than this.
     #[param(default = 2_000_000)]
@@ -213,8 +213,13 @@ impl PoissonDiskParams {
                 "must be in (0, 0.05] (the test criterion is 5 %)",
             ));
         }
-        if self.max_calibrations == 0 {
-            return Err(StageError::param("max_calibrations", "must be at least 1"));
+        // Each calibration is a whole sampling, and a bisection has halved its bracket to
+        // f64 round-off within about 60: 10^9 calibrations only repeat the last sampling.
+        if self.max_calibrations == 0 || self.max_calibrations > MAX_CALIBRATIONS {
+            return Err(StageError::param(
+                "max_calibrations",
+                format!("must be in 1..{MAX_CALIBRATIONS} (the gap bisection reaches f64 round-off within about 60)"),
+            ));
         }
         let spec = Spec {
             dim,
@@ -437,6 +442,9 @@ pub struct Calibrated {
     pub samplings: u32,
 }
 
+/// Most samplings the gap calibration may run (`max_calibrations`).
+pub const MAX_CALIBRATIONS: u32 = 200;
+
 /// Runs the two-step sampling with the given gap, or calibrates the gap by bisection on the
 /// achieved theta (which falls as the gap grows: more room is left to small particles).
 pub fn calibrated_sample(
@@ -501,6 +509,17 @@ pub fn calibrated_sample(
         hi *= 2.0;
     }
     while best.0 > tolerance && runs < max_runs {
+        // A collapsed bracket samples the same gap again and again.
+        if hi - lo <= 1e-12 * hi {
+            return Err(StageError::failed(format!(
+                "the gap calibration cannot reach theta = {theta} within {:.1} %: theta jumps \
+                 across it at a gap of {:.6e} m (best theta = {:.4} after {runs} samplings); \
+                 loosen theta_tolerance, change the seed, or give large_gap",
+                100.0 * tolerance,
+                best.1,
+                best.2.theta(spec)
+            )));
+        }
         let mid = 0.5 * (lo + hi);
         let s = run(mid, &mut runs)?;
         let e = err(&s);

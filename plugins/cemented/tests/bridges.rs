@@ -63,6 +63,10 @@ fn polygon_circle(poly: &[[f64; 2]], c: [f64; 2], r: f64) -> f64 {
         .sum()
 }
 
+fn no_poll(_: u64, _: u64) -> Result<(), ()> {
+    Ok(())
+}
+
 fn two_disks(r1: f64, r2: f64, d: f64) -> Packing {
     let mut p = Packing::new(Domain::boxed(
         [-8e-3, -8e-3, -2e-3],
@@ -161,8 +165,13 @@ fn rasterised_bridge_and_disk_areas_match_exact_areas() {
 fn pairs_beyond_the_gap_get_no_bridge_and_bridges_join_close_pairs() {
     let pk = two_disks(1e-3, 1e-3, 2.5e-3);
     let parts = Particles::from_packing(&pk, "packing").unwrap();
-    assert_eq!(find_bridges(&parts, &pk.domain, 0.4, 0.49e-3).len(), 0);
-    let b = find_bridges(&parts, &pk.domain, 0.4, 0.5e-3 + 1e-12);
+    assert_eq!(
+        find_bridges(&parts, &pk.domain, 0.4, 0.49e-3, no_poll)
+            .unwrap()
+            .len(),
+        0
+    );
+    let b = find_bridges(&parts, &pk.domain, 0.4, 0.5e-3 + 1e-12, no_poll).unwrap();
     assert_eq!(b.len(), 1);
     assert!((b[0].ha - 0.2e-3).abs() < 1e-15 && (b[0].hb - 0.2e-3).abs() < 1e-15);
     // A point on the axis in the gap is matrix, one beyond the half-width is not.
@@ -174,7 +183,7 @@ fn pairs_beyond_the_gap_get_no_bridge_and_bridges_join_close_pairs() {
 fn labels_do_not_depend_on_the_thread_count() {
     let pk = two_disks(1e-3, 0.7e-3, 2.2e-3);
     let parts = Particles::from_packing(&pk, "packing").unwrap();
-    let bridges = find_bridges(&parts, &pk.domain, 0.6, 1e-3);
+    let bridges = find_bridges(&parts, &pk.domain, 0.6, 1e-3, no_poll).unwrap();
     let grid = Grid::tiling(
         [-4e-3, -4e-3, -2.5e-6],
         [4e-3, 4e-3, 2.5e-6],
@@ -229,4 +238,33 @@ fn preflight_refuses_a_crop_outside_the_box_and_bad_eta() {
         }),
         "voxel_size"
     );
+    // Issue 35: `max_gap: 1` (1 m) searched for minutes, ignoring Ctrl-C. Wider than half the
+    // box (8 mm here) is refused before running; wider than the largest particle (2 mm) when
+    // the particles are known.
+    assert_eq!(
+        key(BridgesParams {
+            max_gap: Some(Q::new(1.0)),
+            ..Default::default()
+        }),
+        "max_gap"
+    );
+    let p = BridgesParams {
+        max_gap: Some(Q::new(3e-3)),
+        crop_size: Some(Q::new(10e-3)),
+        ..Default::default()
+    };
+    let pf = Bridges.preflight(&p, &metas).unwrap();
+    let mut inputs = Inputs::new();
+    inputs.insert("packing".into(), Arc::new(Artifact::Packing(pk.clone())));
+    let ctx = RunContext::new(0, &SilentReporter);
+    match Bridges.run(&p, &pf.plan, &inputs, &ctx) {
+        Err(grainpipe_core::StageError::InvalidParam { key, message }) => {
+            assert_eq!(key, "max_gap");
+            assert!(
+                message.contains("largest particle (2 mm across)"),
+                "{message}"
+            );
+        }
+        other => panic!("{:?}", other.map(|_| ())),
+    }
 }

@@ -166,3 +166,35 @@ fn spheres_compact_in_3d() {
     // by the looser wall layers.
     assert!(phi > 0.50 && phi < 0.66, "{phi}");
 }
+
+/// Issue 35: a pressure of 1e300 Pa (k_n = 1e304) went on to 10^6 steps with an infinite force
+/// ratio. Pressures no grain survives and stiffness ratios whose forces lose their digits are
+/// refused, naming the key.
+#[test]
+fn absurd_pressure_and_stiffness_are_refused() {
+    for (p, key) in [
+        (
+            CompactParams {
+                pressure: grainpipe_core::units::Q::new(1e300),
+                ..Default::default()
+            },
+            "pressure",
+        ),
+        (
+            CompactParams {
+                stiffness_ratio: 1e12,
+                ..Default::default()
+            },
+            "stiffness_ratio",
+        ),
+    ] {
+        match p.spec() {
+            Err(grainpipe_core::StageError::InvalidParam { key: k, message }) => {
+                assert_eq!(k, key, "{message}")
+            }
+            other => panic!("{key}: {:?}", other.map(|_| ())),
+        }
+    }
+    // The paper's values pass.
+    CompactParams::default().spec().unwrap();
+}

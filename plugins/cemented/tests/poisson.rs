@@ -158,4 +158,8 @@ fn preflight_refuses_absurd_input_naming_the_key() {
     let mut p = params(2, 5.0, 1.4, 20000.0, false);
     p.max_particles = 1000;
     assert_eq!(key(p), "size");
+    // Issue 35: 10^9 calibrations kept bisecting a collapsed interval.
+    let mut p = params(2, 5.0, 1.4, 20.0, false);
+    p.max_calibrations = 1_000_000_000;
+    assert_eq!(key(p), "max_calibrations");
 }

@@ -169,7 +169,7 @@ impl Material {
                 if !(m.nu > -1.0 && m.nu < 0.5) {
                     return Err(format!("nu must lie in (-1, 0.5), got {}", m.nu));
                 }
-                Ok(crate::kernel::Iso::from_e_nu(e, m.nu))
+                derived_moduli_plausible(crate::kernel::Iso::from_e_nu(e, m.nu), "E and nu")
             }
             Material::BulkShear(m) => {
                 let (k, g) = (m.k.si(), m.g.si());
@@ -178,13 +178,13 @@ impl Material {
                 }
                 plausible_modulus("K", k)?;
                 plausible_modulus("G", g)?;
-                Ok(crate::kernel::Iso::from_k_g(k, g))
+                derived_moduli_plausible(crate::kernel::Iso::from_k_g(k, g), "K and G")
             }
         }
     }
 }
 
-pub use grainpipe_core::units::MAX_MODULUS;
+pub use grainpipe_core::units::{MAX_MODULUS, MIN_MODULUS};
 
 fn plausible_modulus(key: &str, v: f64) -> Result<(), String> {
     if v > MAX_MODULUS {
@@ -193,7 +193,26 @@ fn plausible_modulus(key: &str, v: f64) -> Result<(), String> {
              (66.9 GPa for quartz)"
         ));
     }
+    if v < MIN_MODULUS {
+        return Err(format!(
+            "{key} = {v:.3e} Pa is below {MIN_MODULUS} Pa; check the unit (66.9 GPa for quartz; \
+             a void is a phase left out of `materials`)"
+        ));
+    }
     Ok(())
+}
+
+/// The moduli the solver uses, derived from the two given: each within the plausible range
+/// too. nu = -0.999999 with E = 66.9 GPa gives G = 3.3e16 Pa, nu -> 0.5 an unbounded K; both
+/// passed the check on E and returned an indefinite, non-symmetric "stiffness".
+fn derived_moduli_plausible(
+    iso: crate::kernel::Iso,
+    from: &str,
+) -> Result<crate::kernel::Iso, String> {
+    for (name, v) in [("bulk modulus K", iso.bulk()), ("shear modulus G", iso.mu)] {
+        plausible_modulus(name, v).map_err(|m| format!("{m} (derived from {from})"))?;
+    }
+    Ok(iso)
 }
 
 impl ParamType for Material {

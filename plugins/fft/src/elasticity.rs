@@ -300,8 +300,52 @@ impl TypedStage for ElasticityFft {
         let input_image = input(inputs, "image", Artifact::as_phase_image)?;
         let field = InterfaceParams::subvoxel_input(inputs)?;
         let (image, result) = solve_image(p, input_image, field, ctx)?;
+        check_stiffness(&result.stiffness, &p.load_cases)?;
         outputs(p, &image, result)
     }
+}
+
+/// Largest relative asymmetry `|C - C^T| / |C|` of an apparent stiffness that is reported. A
+/// converged solve is symmetric to about its tolerance (1e-5 by default); 5 % means the
+/// solve did not reach the problem's solution (round-off at a contrast the precision cannot
+/// carry: 1e17 gave 1.3).
+pub const MAX_STIFFNESS_ASYMMETRY: f64 = 0.05;
+
+/// A stiffness that is not one fails loudly instead of being reported: every computed
+/// diagonal entry positive and finite; with all six load cases, symmetric to
+/// [`MAX_STIFFNESS_ASYMMETRY`] and positive definite.
+pub fn check_stiffness(c: &[[f64; 6]; 6], cases: &[LoadCase]) -> Result<(), StageError> {
+    for case in cases {
+        let k = case.column();
+        if !(c[k][k] > 0.0 && c.iter().all(|row| row[k].is_finite())) {
+            return Err(StageError::failed(format!(
+                "load case {} gave C{}{} = {:.3e} Pa: not a stiffness (the solve lost its accuracy; \
+                 check the material contrast, or use precision: double)",
+                case.name(),
+                k + 1,
+                k + 1,
+                c[k][k]
+            )));
+        }
+    }
+    if cases.len() == 6 {
+        let asym = constants::asymmetry(c);
+        if asym > MAX_STIFFNESS_ASYMMETRY {
+            return Err(StageError::failed(format!(
+                "the apparent stiffness is not symmetric (|C - C^T| / |C| = {asym:.2e}, above \
+                 {MAX_STIFFNESS_ASYMMETRY}): the solve did not converge to the solution; check the \
+                 material contrast and the residual history, or use precision: double"
+            )));
+        }
+        if !constants::positive_definite(c) {
+            return Err(StageError::failed(
+                "the apparent stiffness is not positive definite (some strain would release \
+                 energy): the solve did not converge to the solution; check the material \
+                 contrast and the residual history, or use precision: double",
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The image that is solved (the input, or its coarsening) and the solve: the interface

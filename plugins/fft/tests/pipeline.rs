@@ -160,6 +160,78 @@ fn moduli_out_of_range_fail_loudly() {
     assert!(err.contains("out of floating-point range"), "{err}");
 }
 
+/// Issue 35: every modulus the solver uses is guarded, not only the given ones. nu = -0.999999
+/// made G = 3.3e16 Pa (past the 1e15 guard on E) and an indefinite, non-symmetric "stiffness";
+/// E = 5e-324 underflowed to a void and was reported as "no solid voxel".
+#[test]
+fn derived_and_vanishing_moduli_are_refused_at_preflight() {
+    for (material, expect) in [
+        (
+            "{ E: 66.9 GPa, nu: -0.999999 }",
+            "shear modulus G = 3.345e16 Pa is above 1e15 Pa",
+        ),
+        ("{ E: 66.9 GPa, nu: 0.4999999999 }", "bulk modulus K"),
+        (
+            "{ E: 5e-324 Pa, nu: 0.25 }",
+            "E = 4.941e-324 Pa is below 1 Pa",
+        ),
+        (
+            "{ K: 1e14 Pa, G: 1e-3 Pa }",
+            "G = 1.000e-3 Pa is below 1 Pa",
+        ),
+    ] {
+        let err = refusal(
+            "elasticity.fft",
+            &format!("{{ materials: {{ sand: {material} }} }}"),
+        );
+        assert!(err.contains(expect), "{material}: {err}");
+    }
+}
+
+/// The result check behind the solver: a matrix that is not a stiffness fails instead of being
+/// reported. References: an isotropic stiffness passes; its transpose-perturbed copy (the 1.3
+/// asymmetry of the reported case) and an indefinite symmetric one fail.
+#[test]
+fn a_stiffness_that_is_not_one_fails() {
+    use grainpipe_fft::elasticity::{check_stiffness, LoadCase};
+    let all = [
+        LoadCase::Xx,
+        LoadCase::Yy,
+        LoadCase::Zz,
+        LoadCase::Yz,
+        LoadCase::Xz,
+        LoadCase::Xy,
+    ];
+    let (l, m) = (26.76e9, 26.76e9);
+    let mut c = [[0.0; 6]; 6];
+    for i in 0..3 {
+        for j in 0..3 {
+            c[i][j] = l;
+        }
+        c[i][i] = l + 2.0 * m;
+        c[i + 3][i + 3] = m;
+    }
+    check_stiffness(&c, &all).unwrap();
+    let mut skew = c;
+    skew[0][1] += 1.3 * 1.5 * l;
+    let e = check_stiffness(&skew, &all).unwrap_err().to_string();
+    assert!(e.contains("not symmetric"), "{e}");
+    let mut indefinite = c;
+    for i in 0..3 {
+        for j in 0..3 {
+            indefinite[i][j] = if i == j { l } else { 2.0 * l };
+        }
+    }
+    let e = check_stiffness(&indefinite, &all).unwrap_err().to_string();
+    assert!(e.contains("not positive definite"), "{e}");
+    let mut negative = c;
+    negative[2][2] = -1.0;
+    let e = check_stiffness(&negative, &[LoadCase::Zz])
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("load case zz"), "{e}");
+}
+
 /// The composite-voxel chain from YAML: voxelize.packing with `subvoxel: true` exports its
 /// sub-voxel geometry to HDF5; a second pipeline imports image and geometry (import.hdf5,
 /// `as: field`) and solves with `interfaces: composite`. The stiffness equals the one solved

@@ -73,6 +73,15 @@ fn subvoxel_geometry(
 /// Upper bound on voxels, so a typo in voxel_size is refused instead of swapping.
 const MAX_VOXELS: f64 = 4e9;
 
+/// The parameter that set the voxel: `voxel_size` when given, else `voxels_per_diameter`.
+fn voxel_key(p: &VoxelizeParams) -> &'static str {
+    if p.voxel_size.si() > 0.0 {
+        "voxel_size"
+    } else {
+        "voxels_per_diameter"
+    }
+}
+
 fn voxel_size(p: &VoxelizeParams, mean_diameter: f64) -> f64 {
     if p.voxel_size.si() > 0.0 {
         p.voxel_size.si()
@@ -156,6 +165,7 @@ impl TypedStage for Voxelize {
             let scale = meta.and_then(|m| m.mean_diameter.or(m.length_scale));
             if p.voxel_size.si() > 0.0 || scale.is_some() {
                 let v = voxel_size(p, scale.unwrap_or(0.0));
+                Grid::check_tiling(lo, hi, v).map_err(|m| StageError::param(voxel_key(p), m))?;
                 let n: f64 = (0..3)
                     .map(|a| ((hi[a] - lo[a]) / v).round().max(1.0))
                     .product();
@@ -211,6 +221,7 @@ impl TypedStage for Voxelize {
         }
         let d = &packing.domain;
         let v = planned_voxel.unwrap_or_else(|| voxel_size(p, packing.mean_diameter()));
+        Grid::check_tiling(d.min, d.max, v).map_err(|m| StageError::param(voxel_key(p), m))?;
         let n: f64 = (0..3)
             .map(|a| ((d.max[a] - d.min[a]) / v).round().max(1.0))
             .product();

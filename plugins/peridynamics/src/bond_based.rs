@@ -520,6 +520,27 @@ fn e_max(p: &BondBasedParams) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// Smallest explicit step accepted, as a fraction of the critical one.
+pub const MIN_STEP_FRACTION: f64 = 1e-3;
+
+/// A step far below the critical one does not fail, it never arrives: the damped dynamics
+/// needs about 1/dt steps to reach equilibrium, so max_iterations runs out (1e-300 s was
+/// answered with "diverging ... reduce time_step").
+fn too_small_step(t: f64, critical: f64) -> Result<(), StageError> {
+    if t < MIN_STEP_FRACTION * critical {
+        return Err(StageError::param(
+            "time_step",
+            format!(
+                "{t:.4e} s is below {MIN_STEP_FRACTION} x the critical explicit step \
+                 ({critical:.4e} s): equilibrium would take about {:.0e} times the iterations of \
+                 the default step (0.8 x critical); leave time_step out, or use the adr solver",
+                0.8 * critical / t
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// The smallest critical time step any image can have: a node with the full stencil of the
 /// stiffest bond class (Silling & Askari 2005, eq. (20)): dt = sqrt(2 rho / sum_j c V_j /
 /// |xi_j|) [s].
@@ -708,6 +729,7 @@ impl TypedStage for BondBased {
         if p.solver == SolverKind::Explicit {
             let crit = bulk_critical_step(p, dx, h, dim3);
             if let Some(t) = p.time_step {
+                too_small_step(t.si(), crit)?;
                 if t.si() > crit {
                     return Err(StageError::param(
                         "time_step",
@@ -940,6 +962,7 @@ pub fn solve_image(
         SolverKind::Explicit => {
             let dt = match p.time_step {
                 Some(t) => {
+                    too_small_step(t.si(), dt_crit)?;
                     if t.si() > dt_crit {
                         return Err(StageError::param(
                             "time_step",

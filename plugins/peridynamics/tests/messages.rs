@@ -114,3 +114,19 @@ fn horizons_without_shear_stiffness_are_refused_and_anisotropy_is_measured() {
     });
     assert!(big.contains("check the unit"), "{big}");
 }
+
+/// Issue 35: `time_step: 1e-300` was answered with "diverging ... reduce time_step". A step
+/// far below the critical one is refused on its key, saying why.
+#[test]
+fn a_vanishing_explicit_step_is_refused_on_its_key() {
+    let e = error(BondBasedParams {
+        solver: SolverKind::Explicit,
+        time_step: Some(grainpipe_core::units::Q::new(1e-300)),
+        ..base()
+    });
+    assert!(
+        e.contains("time_step") && e.contains("below 0.001 x the critical explicit step"),
+        "{e}"
+    );
+    assert!(!e.contains("reduce time_step"), "{e}");
+}

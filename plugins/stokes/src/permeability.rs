@@ -151,10 +151,14 @@ fn check_params(p: &PermeabilityParams) -> Result<(), StageError> {
     if !(p.pressure_drop.si() > 0.0 && p.pressure_drop.si().is_finite()) {
         return Err(StageError::param("pressure_drop", "must be positive"));
     }
-    if !(p.tolerance > 0.0 && p.tolerance < 1.0) {
+    if !(p.tolerance >= crate::minres::MIN_TOLERANCE && p.tolerance < 1.0) {
         return Err(StageError::param(
             "tolerance",
-            "must be in (0, 1); 1e-5 is usual (f32 vectors reach about 1e-7)",
+            format!(
+                "must be in [{:.0e}, 1); 1e-5 is usual (the solver's vectors are single \
+                 precision: below about 1e-7 the residual is round-off)",
+                crate::minres::MIN_TOLERANCE
+            ),
         ));
     }
     if p.max_iterations == 0 || p.max_iterations > 100_000 {
@@ -537,6 +541,13 @@ impl TypedStage for PermeabilityStage {
             // eq. (3.8): <u>_Y = kappa f / mu with f = pressure drop / cell length.
             let f = p.pressure_drop.si() / extent[a];
             let ud = kappa * f / mu;
+            if !ud.is_finite() {
+                return Err(StageError::failed(format!(
+                    "the Darcy velocity along {} is {ud} m/s for kappa = {kappa:.3e} m^2: check \
+                     the units of `viscosity` ({mu:.3e} Pa s) and `pressure_drop`",
+                    ["x", "y", "z"][a]
+                )));
+            }
             names.push(["x", "y", "z"][a].to_string());
             k_si.push(kappa);
             k_d.push(kappa / DARCY);
@@ -629,7 +640,8 @@ impl TypedStage for PermeabilityStage {
             // Voxel units to SI: the body force f that gives the sample `pressure_drop`
             // (u scales with f h^2 / mu, p with f h).
             let f = p.pressure_drop.si() / (h * fields.pressure_drop);
-            let (us, ps) = ((f * h * h / mu) as f32, (f * h) as f32);
+            let (us, ps) =
+                single_precision_scales(f * h * h / mu, f * h, &fields.velocity, &fields.pressure)?;
             let vel = fields.velocity.iter().map(|v| v * us).collect();
             let pre = fields.pressure.iter().map(|v| v * ps).collect();
             let field = |name: &str, unit: &str, conv, data| {
@@ -647,6 +659,31 @@ impl TypedStage for PermeabilityStage {
         }
         Ok(out)
     }
+}
+
+/// The factors from voxel units to m/s and Pa for the f32 fields, refused when the largest
+/// value would not fit single precision (inf velocities were exported with exit 0 for a
+/// viscosity of 1e-60 Pa s).
+fn single_precision_scales(
+    velocity_scale: f64,
+    pressure_scale: f64,
+    velocity: &[f32],
+    pressure: &[f32],
+) -> Result<(f32, f32), StageError> {
+    let largest = |v: &[f32]| v.iter().fold(0.0f64, |m, x| m.max(f64::from(x.abs())));
+    for (name, unit, scale, values) in [
+        ("velocity", "m/s", velocity_scale, velocity),
+        ("pressure", "Pa", pressure_scale, pressure),
+    ] {
+        let top = largest(values) * scale.abs();
+        if !(scale.is_finite() && top < f64::from(f32::MAX)) {
+            return Err(StageError::failed(format!(
+                "the {name} field reaches {top:.3e} {unit}, beyond single precision: check the \
+                 units of `viscosity` and `pressure_drop` (kappa does not depend on them)"
+            )));
+        }
+    }
+    Ok((velocity_scale as f32, pressure_scale as f32))
 }
 
 /// Voxel-centred velocity (mean of the two faces along each axis, component fastest) and

@@ -117,6 +117,8 @@ fn bad_parameters_are_refused() {
         ("{ tolerance: 2.0 }", "tolerance"),
         ("{ fluid: [] }", "fluid"),
         ("{ viscosity: -1 }", "viscosity"),
+        // Issue 35: 1e-300 ran all 10^5 iterations; below 1e-9 is f32 round-off.
+        ("{ tolerance: 1.0e-300 }", "must be in [1e-9, 1)"),
     ] {
         let err = run_yaml(&registry(), &small_yaml(with))
             .err()
@@ -124,6 +126,24 @@ fn bad_parameters_are_refused() {
             .to_string();
         assert!(err.contains(key), "{with}: {err}");
     }
+}
+
+/// Issue 35: a viscosity far below any fluid's made the exported velocities inf (exit 0). The
+/// permeability does not depend on it (1e-60 Pa s here), but the velocities would not fit f32: a loud failure
+/// naming the units to check.
+#[test]
+fn velocities_beyond_single_precision_fail_loudly() {
+    let err = run_yaml(
+        &registry(),
+        &small_yaml("{ directions: [x], viscosity: 1e-60 Pa s, fields: true }"),
+    )
+    .err()
+    .expect("inf velocities were exported")
+    .to_string();
+    assert!(
+        err.contains("beyond single precision") && err.contains("viscosity"),
+        "{err}"
+    );
 }
 
 #[test]

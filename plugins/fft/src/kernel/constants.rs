@@ -47,6 +47,15 @@ pub fn symmetrize(c: &M6) -> M6 {
     s
 }
 
+/// Whether the symmetric part of `c` is positive definite: the Cholesky factorisation of its
+/// Mandel form (a stiffness must store positive energy for every strain).
+pub fn positive_definite(c: &M6) -> bool {
+    let m = to_mandel(&symmetrize(c));
+    nalgebra::Matrix6::from_fn(|i, j| m[i][j])
+        .cholesky()
+        .is_some()
+}
+
 /// Relative asymmetry `|C - C^T| / |C|` (Mandel norm).
 pub fn asymmetry(c: &M6) -> f64 {
     let m = to_mandel(c);
