@@ -188,11 +188,11 @@ fn labels_present(labels: &[u8]) -> [bool; 256] {
     p
 }
 
+/// Selected phases as (label, name), in output order, and the mask of selected labels.
+type Selected = (Vec<(u8, String)>, [bool; 256]);
+
 /// The selected phases of an image and the label mask.
-fn image_phases(
-    img: &PhaseImage,
-    o: &ExportOptions,
-) -> Result<(Vec<(u8, String)>, [bool; 256]), String> {
+fn image_phases(img: &PhaseImage, o: &ExportOptions) -> Result<Selected, String> {
     crate::volume::VolumeRef::Phase(img).validate()?;
     let sel = selection(o).map_err(|(k, m)| format!("option `{k}`: {m}"))?;
     let present = labels_present(&img.labels);
