@@ -110,9 +110,10 @@ pub fn plan(
     let order = topological_order(doc, &wiring.wires, &mut errs);
     let exports = plan_exports(doc, registry, &resolved.stages, &mut errs);
     let needed = needed_steps(doc, opts, &exports, &wiring.wires, &mut errs);
-    let (steps, exec_order, memory) =
+    let (mut steps, exec_order, mut memory) =
         preflight_steps(doc, &resolved, &wiring, &order, &needed, &mut errs);
     check_export_outputs(doc, &steps, &exports, &mut errs);
+    memory = memory.saturating_add(preflight_exports(doc, &mut steps, &exports, &mut errs));
     check_memory(doc, opts, memory, &mut errs);
     PipelineError::collect(errs)?;
     Ok(Plan {
@@ -320,7 +321,13 @@ fn plan_exports(
         let before = errs.len();
         if let Err((m, help)) = check_export_path(&e.to) {
             errs.push(err(doc, e.to_loc, m).with_help(help));
-        } else if let Some(prev) = exports.iter().find(|p| same_path(&p.path, &e.to)) {
+        } else if let Some(prev) = exports.iter().find(|p| {
+            let theirs = p.exporter.written_paths(&p.path);
+            exporter
+                .written_paths(&e.to)
+                .iter()
+                .any(|mine| theirs.iter().any(|t| same_path(t, mine)))
+        }) {
             errs.push(
                 err(
                     doc,
@@ -558,6 +565,47 @@ fn check_export_outputs(
             );
         }
     }
+}
+
+/// Each export checked against its producer's announced output ([`Exporter::preflight`]);
+/// the memory a write needs is added to the producing step's estimate (exports are written
+/// while the step's outputs are held). Returns the memory added.
+fn preflight_exports(
+    doc: &PipelineDoc,
+    planned: &mut [Option<PlannedStep>],
+    exports: &[PlannedExport],
+    errs: &mut Vec<PipelineError>,
+) -> u64 {
+    let mut added = 0u64;
+    for e in exports {
+        let Some(p) = planned[e.producer].as_mut() else {
+            continue;
+        };
+        let Some(meta) = p.preflight.outputs.get(&e.port) else {
+            continue;
+        };
+        match e.exporter.preflight(meta, &e.options) {
+            Ok(bytes) => {
+                p.preflight.memory_bytes = p.preflight.memory_bytes.saturating_add(bytes);
+                added = added.saturating_add(bytes);
+            }
+            Err((key, message)) => {
+                let loc = doc
+                    .exports
+                    .iter()
+                    .find(|x| x.to_loc == e.loc)
+                    .and_then(|x| x.option_locs.get(&key).copied())
+                    .unwrap_or(e.loc);
+                let what = if key == "to" {
+                    format!("format `{}`: {message}", e.exporter.name())
+                } else {
+                    format!("format `{}`, option `{key}`: {message}", e.exporter.name())
+                };
+                errs.push(err(doc, loc, what));
+            }
+        }
+    }
+    added
 }
 
 /// The summed preflight estimate against the memory available. With other errors the sum

@@ -918,6 +918,9 @@ pub struct ArtifactMeta {
     /// (e.g. from coefficient files), for downstream preflight checks such as a size cap.
     /// Estimates, not checked.
     pub item_sizes: Option<Vec<ItemSize>>,
+    /// The phase table of a phase image when the parameters fix it (ids and names). Checked:
+    /// the produced image has exactly these phases. Exports check phase selections against it.
+    pub phases: Option<Vec<Phase>>,
 }
 
 /// What preflight knows of one grain: its name, volume [m^3] and bounding-sphere diameter
@@ -941,6 +944,7 @@ impl ArtifactMeta {
             length_scale: None,
             mean_diameter: None,
             item_sizes: None,
+            phases: None,
         }
     }
 
@@ -965,6 +969,12 @@ impl ArtifactMeta {
     pub fn with_count(mut self, estimate: u64, bounds: Option<[u64; 2]>) -> Self {
         self.count_estimate = estimate;
         self.count_bounds = bounds;
+        self
+    }
+
+    /// Announces the exact phase table of a phase image.
+    pub fn with_phases(mut self, phases: Vec<Phase>) -> Self {
+        self.phases = Some(phases);
         self
     }
 
@@ -1010,6 +1020,20 @@ impl ArtifactMeta {
                 if !grids_agree(g, got) {
                     return Err(format!("announced the grid {g:?} but gave {got:?}"));
                 }
+            }
+        }
+        if let (Some(announced), Artifact::PhaseImage(img)) = (&self.phases, a) {
+            let key = |t: &[Phase]| {
+                let mut v: Vec<(u8, String)> = t.iter().map(|p| (p.id, p.name.clone())).collect();
+                v.sort();
+                v
+            };
+            if key(announced) != key(&img.phases) {
+                return Err(format!(
+                    "announced the phases {:?} but gave {:?}",
+                    key(announced),
+                    key(&img.phases)
+                ));
             }
         }
         if let Artifact::Packing(p) = a {

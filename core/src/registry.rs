@@ -40,6 +40,24 @@ pub trait Exporter: Send + Sync {
     fn check_options(&self, _options: &ExportOptions) -> Result<(), (String, String)> {
         Ok(())
     }
+    /// Every file an export to `path` writes: `path` itself and any companion file (the
+    /// heavy-data `.h5` beside an `.xdmf`). Two exports whose files overlap are refused at
+    /// planning, as two exports to one path are.
+    fn written_paths(&self, path: &Path) -> Vec<std::path::PathBuf> {
+        vec![path.to_path_buf()]
+    }
+    /// Checks an export against what preflight knows of the artifact (its announced
+    /// [`ArtifactMeta`]: kind, grid, phase table, counts) and returns the memory the write
+    /// needs beyond the artifact itself [bytes], which the engine adds to the producing
+    /// step's estimate. On error: the option (or `to` when no option is at fault) and why.
+    /// By default nothing is checked and no memory is needed.
+    fn preflight(
+        &self,
+        _meta: &crate::model::ArtifactMeta,
+        _options: &ExportOptions,
+    ) -> Result<u64, (String, String)> {
+        Ok(0)
+    }
     /// Writes atomically: a crash never leaves a partial file at `path`. `options` holds
     /// every declared option, the export's value or else the default (the engine fills it;
     /// other callers pass [`Exporter::default_options`] or use [`Exporter::write_defaults`]).

@@ -51,9 +51,23 @@ pub(crate) fn dataset<T: H5Type>(
     deflate: u8,
 ) -> H5Result<Dataset> {
     debug_assert_eq!(shape.iter().product::<usize>(), data.len());
+    let d = empty_dataset::<T>(g, name, shape, deflate)?;
+    if !data.is_empty() {
+        d.write_raw(data)?;
+    }
+    Ok(d)
+}
+
+/// A dataset of `shape`, chunked and deflated as [`dataset`] does, to be filled by slabs.
+pub(crate) fn empty_dataset<T: H5Type>(
+    g: &Group,
+    name: &str,
+    shape: &[usize],
+    deflate: u8,
+) -> H5Result<Dataset> {
     let elem = std::mem::size_of::<T>();
     let mut b = g.new_dataset::<T>().shape(shape);
-    if deflate > 0 && std::mem::size_of_val(data) >= MIN_COMPRESSED_BYTES {
+    if deflate > 0 && shape.iter().product::<usize>() * elem >= MIN_COMPRESSED_BYTES {
         let mut filters = Vec::new();
         if elem > 1 {
             filters.push(hdf5_metno::filters::Filter::shuffle());
@@ -61,11 +75,7 @@ pub(crate) fn dataset<T: H5Type>(
         filters.push(hdf5_metno::filters::Filter::deflate(deflate.min(9)));
         b = b.chunk(chunk_shape(shape, elem)).set_filters(&filters);
     }
-    let d = b.create(name)?;
-    if !data.is_empty() {
-        d.write_raw(data)?;
-    }
-    Ok(d)
+    b.create(name)
 }
 
 pub(crate) fn string_dataset(g: &Group, name: &str, values: &[String]) -> H5Result<Dataset> {

@@ -17,6 +17,11 @@
 //! | `lammps-molecule` | (by name) | ClumpLibrary, Packing with clumps |
 //! | `yade` | (by name) | Packing |
 //! | `stl` | .stl | Packing, ClumpLibrary (icospheres), PhaseImage (one phase's surface) |
+//! | `vtu` | .vtu | PhaseImage, Field (hexahedra), Packing (vertices), ContactGraph (lines) |
+//! | `vtk` | .vtk | as `vtu`, legacy format |
+//! | `xdmf` | .xdmf, .xmf | as `vtu` (+ `<stem>.h5`), or images as a 3DCoRectMesh |
+//! | `abaqus` | .inp | PhaseImage (C3D8 voxel mesh) |
+//! | `gmsh` | .msh | PhaseImage (hexahedra, physical group per phase) |
 //!
 //! Every writer goes through `grainpipe_core::fsutil::atomic_write`: a failed write leaves
 //! no file behind. See docs/stages/formats.md for the layouts and how to open them.
@@ -27,6 +32,7 @@ pub mod hdf5_plain;
 pub mod headers;
 pub mod import;
 pub mod import_packing;
+pub mod mesh;
 pub mod netcdf_io;
 pub mod raw;
 pub mod stl;
@@ -68,6 +74,11 @@ pub fn register(r: &mut Registry) {
     r.add_exporter(dem::LammpsMoleculeExporter);
     r.add_exporter(dem::YadeExporter);
     r.add_exporter(stl::StlExporter);
+    r.add_exporter(mesh::VtuExporter);
+    r.add_exporter(mesh::LegacyVtkExporter);
+    r.add_exporter(mesh::XdmfExporter);
+    r.add_exporter(mesh::AbaqusExporter);
+    r.add_exporter(mesh::GmshExporter);
     r.add_stage(import::ImportRaw);
     r.add_stage(import::ImportHdf5);
     r.add_stage(import::ImportNetcdf);

@@ -428,11 +428,17 @@ fn packing_poly(
     })
 }
 
-/// Contacts as lines (gap, bonded) followed by bonds that are not contacts (gap = NaN: no
-/// gap is known for them).
-fn graph_poly(g: &ContactGraph, prov: &Provenance) -> Result<Poly, String> {
-    g.validate()?;
-    let n = g.positions.len();
+/// The lines drawn for a contact graph: every contact, then every bond that is not a
+/// contact, with the gap (NaN for bonds without contact), whether the pair is bonded, and
+/// the bond each line draws (None for an unbonded contact).
+pub(crate) struct GraphLines {
+    pub lines: Vec<i64>,
+    pub gap: Vec<f64>,
+    pub bonded: Vec<u8>,
+    pub line_bond: Vec<Option<usize>>,
+}
+
+pub(crate) fn graph_lines(g: &ContactGraph) -> GraphLines {
     // Bond index by unordered pair, for the bond attributes of each line.
     let bonds: HashMap<(usize, usize), usize> = g
         .bonds
@@ -440,28 +446,43 @@ fn graph_poly(g: &ContactGraph, prov: &Provenance) -> Result<Poly, String> {
         .enumerate()
         .map(|(k, b)| ((b[0].min(b[1]), b[0].max(b[1])), k))
         .collect();
-    let mut lines = Vec::new();
-    let mut gap = Vec::new();
-    let mut bonded = Vec::new();
-    // The bond drawn by each line (None for an unbonded contact).
-    let mut line_bond: Vec<Option<usize>> = Vec::new();
+    let mut out = GraphLines {
+        lines: Vec::new(),
+        gap: Vec::new(),
+        bonded: Vec::new(),
+        line_bond: Vec::new(),
+    };
     let mut in_contacts = HashSet::new();
     for c in &g.contacts {
         let key = (c.i.min(c.j), c.i.max(c.j));
         in_contacts.insert(key);
-        lines.extend([c.i as i64, c.j as i64]);
-        gap.push(c.gap);
-        bonded.push(bonds.contains_key(&key) as u8);
-        line_bond.push(bonds.get(&key).copied());
+        out.lines.extend([c.i as i64, c.j as i64]);
+        out.gap.push(c.gap);
+        out.bonded.push(bonds.contains_key(&key) as u8);
+        out.line_bond.push(bonds.get(&key).copied());
     }
     for (k, b) in g.bonds.iter().enumerate() {
         if !in_contacts.contains(&(b[0].min(b[1]), b[0].max(b[1]))) {
-            lines.extend([b[0] as i64, b[1] as i64]);
-            gap.push(f64::NAN);
-            bonded.push(1);
-            line_bond.push(Some(k));
+            out.lines.extend([b[0] as i64, b[1] as i64]);
+            out.gap.push(f64::NAN);
+            out.bonded.push(1);
+            out.line_bond.push(Some(k));
         }
     }
+    out
+}
+
+/// Contacts as lines (gap, bonded) followed by bonds that are not contacts (gap = NaN: no
+/// gap is known for them).
+fn graph_poly(g: &ContactGraph, prov: &Provenance) -> Result<Poly, String> {
+    g.validate()?;
+    let n = g.positions.len();
+    let GraphLines {
+        lines,
+        gap,
+        bonded,
+        line_bond,
+    } = graph_lines(g);
     let mut cell_data = vec![Array::new("gap", 1, &gap), Array::new("bonded", 1, &bonded)];
     for (name, a) in &g.bond_attributes {
         // Unbonded contacts have no value: NaN, which ParaView leaves uncoloured.

@@ -184,7 +184,8 @@ impl BinderImage {
         self.check()?;
         let (grid, voxels) = self.plan(inputs)?;
         let image = match &grid {
-            Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g.clone()),
+            Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g.clone())
+                .with_phases(self.image(g.clone(), Vec::new()).phases),
             None => {
                 let mut m = ArtifactMeta::of(ArtifactKind::PhaseImage);
                 m.count_estimate = voxels;

@@ -186,6 +186,7 @@ impl TypedStage for Voxelize {
                             ArtifactKind::PhaseImage,
                             Grid::tiling(lo, hi, periodic, v),
                         );
+                        out.phases = Some(phase_table(&p.phase_name));
                         voxel = Some(v);
                     }
                     _ => out.count_estimate = n as u64,
@@ -201,6 +202,7 @@ impl TypedStage for Voxelize {
         if p.subvoxel.subvoxel {
             let mut field = out;
             field.kind = ArtifactKind::Field;
+            field.phases = None;
             pf = pf.announce("subvoxel", field);
         } else {
             pf.outputs.retain(|k, _| k != "subvoxel");
@@ -238,16 +240,7 @@ impl TypedStage for Voxelize {
         let image = PhaseImage {
             grid: grid.clone(),
             labels,
-            phases: vec![
-                Phase {
-                    id: 0,
-                    name: "pore".into(),
-                },
-                Phase {
-                    id: 1,
-                    name: p.phase_name.clone(),
-                },
-            ],
+            phases: phase_table(&p.phase_name),
         };
         let analytic = packing.volume_fraction();
         let img = image.fraction(1);
@@ -652,4 +645,18 @@ pub fn voxelize(
         labels,
         total as f64 / (samples as f64 * grid.voxel_count() as f64),
     ))
+}
+
+/// The phase table of a voxelized packing: pore (0) and the solid (1).
+fn phase_table(solid: &str) -> Vec<Phase> {
+    vec![
+        Phase {
+            id: 0,
+            name: "pore".into(),
+        },
+        Phase {
+            id: 1,
+            name: solid.to_string(),
+        },
+    ]
 }

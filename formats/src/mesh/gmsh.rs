@@ -1,0 +1,141 @@
+//! Gmsh MSH 4.1 ASCII (`.msh`) of a voxel mesh: one volume entity and one named physical
+//! group (dimension 3) per phase, 8-node hexahedra (element type 5).
+//!
+//! Layout per the Gmsh reference manual, "MSH file format" (version 4.1): `$MeshFormat`
+//! (`4.1 0 8`), `$PhysicalNames` (`dim tag "name"`), `$Entities` (no points, curves or
+//! surfaces; each volume: tag, bounding box, one physical tag, no bounding surfaces),
+//! `$Nodes` (blocks per entity: `dim tag parametric count`, the tags, then the coordinates),
+//! `$Elements` (blocks per entity: `dim tag type count`, then `tag node...`). Gmsh's
+//! hexahedron node order is VTK's. Node tags are point index + 1; a node shared by several
+//! phases is listed once, in the block of the first selected phase that touches it.
+//! Physical tag and entity tag of a phase = its label + 1 (tags must be positive).
+
+use super::VoxelHexMesh;
+use std::fs::File;
+use std::io::{self, BufWriter, Write};
+use std::path::Path;
+
+/// Bytes beyond the mesh itself: one owner byte per grid corner.
+pub fn memory_bytes(dims: [usize; 3]) -> u64 {
+    ((dims[0] + 1) * (dims[1] + 1) * (dims[2] + 1)) as u64
+}
+
+/// Writes the file at `path` (a plain file; the caller makes it atomic). `phases`: the
+/// selected (id, name) in output order; `comment` goes into a `$Comments` section.
+pub fn write_msh(
+    path: &Path,
+    mesh: &VoxelHexMesh,
+    phases: &[(u8, String)],
+    comment: &str,
+) -> io::Result<()> {
+    use std::fmt::Write as _;
+    let mut w = BufWriter::with_capacity(1 << 20, File::create(path)?);
+    // Which phase block lists each point: the first selected phase (in order) touching it.
+    let mut rank_of = [u8::MAX; 256];
+    for (r, (id, _)) in phases.iter().enumerate() {
+        rank_of[*id as usize] = r as u8;
+    }
+    const NONE: u8 = u8::MAX;
+    let corners = memory_bytes(mesh.dims) as usize;
+    let mut owner = vec![NONE; corners];
+    let mut counts = vec![0usize; phases.len()];
+    let [nx, ny, _] = mesh.dims;
+    for (v, _) in mesh.cells() {
+        let r = rank_of[mesh.label(v) as usize];
+        counts[r as usize] += 1;
+        let (x, y, z) = (v % nx, (v / nx) % ny, v / (nx * ny));
+        for c in super::HEX_CORNERS {
+            let k = mesh.corner_index([x + c[0], y + c[1], z + c[2]]);
+            owner[k] = owner[k].min(r);
+        }
+    }
+    let populated: Vec<usize> = (0..phases.len()).filter(|&r| counts[r] > 0).collect();
+    let tag = |r: usize| phases[r].0 as usize + 1;
+    let mut s = String::from("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Comments\n");
+    for line in comment.lines() {
+        s.push_str(line);
+        s.push('\n');
+    }
+    s.push_str("$EndComments\n$PhysicalNames\n");
+    let _ = writeln!(s, "{}", populated.len());
+    for &r in &populated {
+        let _ = writeln!(
+            s,
+            "3 {} \"{}\"",
+            tag(r),
+            phases[r].1.replace(['"', '\n'], "'")
+        );
+    }
+    s.push_str("$EndPhysicalNames\n$Entities\n");
+    let _ = writeln!(s, "0 0 0 {}", populated.len());
+    let lo = mesh.origin;
+    let hi = mesh.position(mesh.dims);
+    for &r in &populated {
+        let _ = writeln!(
+            s,
+            "{} {:e} {:e} {:e} {:e} {:e} {:e} 1 {} 0",
+            tag(r),
+            lo[0],
+            lo[1],
+            lo[2],
+            hi[0],
+            hi[1],
+            hi[2],
+            tag(r)
+        );
+    }
+    s.push_str("$EndEntities\n$Nodes\n");
+    let np = mesh.point_count();
+    let _ = writeln!(s, "{} {np} {} {np}", populated.len(), np.min(1));
+    w.write_all(s.as_bytes())?;
+    // Point index and corner of each point, in point order, for one pass per block.
+    for &r in &populated {
+        let owner = &owner;
+        let mine = move || {
+            mesh.point_corners()
+                .enumerate()
+                .filter(move |(_, c)| owner[mesh.corner_index(*c)] == r as u8)
+        };
+        let count = mine().count();
+        w.write_all(format!("3 {} 0 {count}\n", tag(r)).as_bytes())?;
+        let mut line = String::new();
+        for (k, _) in mine() {
+            line.clear();
+            let _ = writeln!(line, "{}", k + 1);
+            w.write_all(line.as_bytes())?;
+        }
+        for (_, c) in mine() {
+            let p = mesh.position(c);
+            line.clear();
+            let _ = writeln!(line, "{:e} {:e} {:e}", p[0], p[1], p[2]);
+            w.write_all(line.as_bytes())?;
+        }
+    }
+    let ne = mesh.cell_count();
+    w.write_all(
+        format!(
+            "$EndNodes\n$Elements\n{} {ne} {} {ne}\n",
+            populated.len(),
+            ne.min(1)
+        )
+        .as_bytes(),
+    )?;
+    let mut element = 0usize;
+    let mut line = String::new();
+    for &r in &populated {
+        let id = phases[r].0;
+        w.write_all(format!("3 {} 5 {}\n", tag(r), counts[r]).as_bytes())?;
+        for (_, nodes) in mesh.cells().filter(|(v, _)| mesh.label(*v) == id) {
+            element += 1;
+            line.clear();
+            let _ = write!(line, "{element}");
+            for n in nodes {
+                let _ = write!(line, " {}", n as u64 + 1);
+            }
+            line.push('\n');
+            w.write_all(line.as_bytes())?;
+        }
+    }
+    w.write_all(b"$EndElements\n")?;
+    w.flush()
+}
