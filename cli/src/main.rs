@@ -123,6 +123,13 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    // A closed stdout (`pipe schema | head`) ends the process quietly, as for any Unix filter,
+    // instead of a panic in print! (exit 101): Rust ignores SIGPIPE by default.
+    #[cfg(unix)]
+    // SAFETY: restoring the default disposition of one signal before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     let mut registry = builtin_registry();
     let mut loader = PluginLoader::default();

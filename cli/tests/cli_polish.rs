@@ -349,3 +349,36 @@ stages:
         assert!(d1 >= d0, "progress went back from {d0} to {d1} of {t1}");
     }
 }
+
+/// Issue 36: `pipe schema | head` panicked on the closed pipe (exit 101). A reader that stops
+/// early ends `pipe` as it ends any Unix filter: by SIGPIPE, with nothing on stderr.
+#[cfg(unix)]
+#[test]
+fn a_closed_stdout_is_not_a_panic() {
+    use std::io::Read;
+    use std::os::unix::process::ExitStatusExt;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_pipe"))
+        .arg("schema")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("pipe runs");
+    // Read one byte, then close the pipe, as `head -c 1` does.
+    let mut first = [0u8; 1];
+    let mut out = child.stdout.take().unwrap();
+    out.read_exact(&mut first).unwrap();
+    drop(out);
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    let status = child.wait().unwrap();
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(
+        status.success() || status.signal() == Some(13),
+        "exit {status:?}: {err}"
+    );
+}

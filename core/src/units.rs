@@ -79,7 +79,37 @@ const UNITS: &[(&str, f64, [i8; 7])] = &[
     ("L", 1e-3, [3, 0, 0, 0, 0, 0, 0]),
     ("D", 9.869_233e-13, [2, 0, 0, 0, 0, 0, 0]), // darcy, for permeability
     ("%", 0.01, [0, 0, 0, 0, 0, 0, 0]),
+    // What people write for micrometres.
+    ("micron", 1e-6, [1, 0, 0, 0, 0, 0, 0]),
+    ("microns", 1e-6, [1, 0, 0, 0, 0, 0, 0]),
 ];
+
+/// For a unit that parsed to the wrong dimension: the symbols read as a prefix on a unit
+/// where the prefix is itself a unit (`mK` is millikelvin, not metre kelvin), with the
+/// spelling that separates them.
+pub fn prefix_reading_hint(text: &str) -> Option<String> {
+    let unit = text.trim_start_matches(|c: char| {
+        c.is_ascii_digit() || matches!(c, '.' | '-' | '+' | 'e' | 'E' | ' ')
+    });
+    let tokens = tokenize(unit).ok()?;
+    for t in &tokens {
+        if UNITS.iter().any(|(s, _, _)| s == t) {
+            continue;
+        }
+        for (p, _) in PREFIXES {
+            if let Some(rest) = t.strip_prefix(p) {
+                let prefix_is_unit = UNITS.iter().any(|(s, _, _)| s == p);
+                if prefix_is_unit && UNITS.iter().any(|(s, _, _)| *s == rest) {
+                    return Some(format!(
+                        "`{t}` reads as {p}-prefixed `{rest}`; for `{p}` times `{rest}` write \
+                         `{p} {rest}` (e.g. `W/(m K)`)"
+                    ));
+                }
+            }
+        }
+    }
+    None
+}
 
 const PREFIXES: &[(&str, f64)] = &[
     ("p", 1e-12),
@@ -345,8 +375,11 @@ impl<'de, D: Dim> Deserialize<'de> for Q<D> {
             fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<Q<D>, E> {
                 let q = parse_quantity(v).map_err(E::custom)?;
                 if q.dim != D::DIM {
+                    let hint = prefix_reading_hint(v)
+                        .map(|h| format!(": {h}"))
+                        .unwrap_or_default();
                     return Err(E::custom(format!(
-                        "`{v}` has dimension {} but this parameter takes {}",
+                        "`{v}` has dimension {} but this parameter takes {}{hint}",
                         q.dim,
                         D::SI_UNIT
                     )));
@@ -413,6 +446,22 @@ mod tests {
         assert!(e.to_string().contains("takes m"), "{e}");
         assert!(parse_quantity("3 furlongs").is_err());
         assert!(parse_quantity("um").is_err());
+        // Issue 36: `micron(s)` are accepted, and `W/mK` (watts per millikelvin) is explained.
+        assert!(close(parse_quantity("140 microns").unwrap().value, 140e-6));
+        assert!(close(parse_quantity("1 micron").unwrap().value, 1e-6));
+        let hint = prefix_reading_hint("0.5 W/mK").unwrap();
+        assert!(
+            hint.contains("`mK` reads as m-prefixed `K`") && hint.contains("W/(m K)"),
+            "{hint}"
+        );
+        assert_eq!(prefix_reading_hint("0.5 W/(m K)"), None);
+        let e = serde_json::from_value::<Q<ThermalConductivity>>(serde_json::json!("0.5 W/mK"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("takes W/(m K)") && e.contains("reads as m-prefixed"),
+            "{e}"
+        );
         assert_eq!(format_length(4e-4), "400 um");
         assert_eq!(format_length(1e-3), "1 mm");
         assert_eq!(format_length(2.5e-5), "25 um");

@@ -158,6 +158,23 @@ def test_dict_pipeline_and_validate():
     np.testing.assert_array_equal(r2["voxels.image"].array, img.array)
 
 
+def test_numpy_scalars_and_one_target_string():
+    """Issue 35: numpy scalars were refused as parameter values (json cannot write them) and a
+    string `targets` was split into characters."""
+    set_np = dict(SET, **{"pack.volume_fraction": np.float32(0.25),
+                          "voxels.voxels_per_diameter": np.int64(12)})
+    set_py = dict(SET, **{"pack.volume_fraction": float(np.float32(0.25)),
+                          "voxels.voxels_per_diameter": 12})
+    a = gp.run(SPHERES, set=set_np, seed=np.int64(SEED), cache=False, exports=False,
+               progress=False)
+    b = gp.run(SPHERES, set=set_py, seed=SEED, cache=False, exports=False, progress=False)
+    np.testing.assert_array_equal(a["voxels.image"].array, b["voxels.image"].array)
+    plan = gp.validate(SPHERES, set=set_np, targets="pack", exports=False)
+    assert [s["id"] for s in plan["steps"]] == ["pack"]
+    with pytest.raises(TypeError, match="step ids"):
+        gp.validate(SPHERES, targets=[1], exports=False)
+
+
 def test_describe_is_pipe_describe():
     d = gp.describe("packing.rsa")
     out = subprocess.run([PIPE, "describe", "--json", "packing.rsa"], check=True,

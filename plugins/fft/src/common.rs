@@ -239,13 +239,60 @@ fn key_for<'a, V>(map: &'a IndexMap<String, V>, phase: &Phase) -> Option<&'a V> 
         .or_else(|| map.get(&phase.id.to_string()))
 }
 
-/// Checks that every key of a phase-property map parses as a name or label (syntax only:
-/// the phases of the image are known at run time).
-pub fn check_keys<V>(key: &str, map: &IndexMap<String, V>) -> Result<(), StageError> {
+/// Checks a phase-property map (`materials`, `conductivities`) at preflight: no empty key,
+/// and, when the upstream stage announces its phase table, an entry for every phase but
+/// label 0 (which defaults to pore). A misspelt key (`bindr`) used to pass `pipe validate`
+/// and fail at run time after the upstream steps; it is now named with the phase it
+/// probably meant.
+pub fn check_keys<V>(
+    key: &str,
+    map: &IndexMap<String, V>,
+    phases: Option<&[Phase]>,
+) -> Result<(), StageError> {
     for k in map.keys() {
         if k.trim().is_empty() {
             return Err(StageError::param(key, "empty phase name"));
         }
+    }
+    let Some(phases) = phases else {
+        return Ok(());
+    };
+    let matches_a_phase = |k: &String| {
+        phases
+            .iter()
+            .any(|p| &p.name == k || p.id.to_string() == *k)
+    };
+    for phase in phases.iter().filter(|p| p.id != 0) {
+        if key_for(map, phase).is_some() {
+            continue;
+        }
+        let unmatched: Vec<&str> = map
+            .keys()
+            .filter(|k| !matches_a_phase(k))
+            .map(String::as_str)
+            .collect();
+        let hint = match grainpipe_core::suggest::closest(&phase.name, unmatched.iter().copied()) {
+            Some(k) => format!("; did you mean `{}` for `{k}`?", phase.name),
+            None => String::new(),
+        };
+        return Err(StageError::param(
+            key,
+            format!(
+                "the image will have phase `{}` (label {}) and `{key}` has no entry for it \
+                 (keys given: {}; the image's phases: {}){hint}",
+                phase.name,
+                phase.id,
+                map.keys()
+                    .map(|k| format!("`{k}`"))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                phases
+                    .iter()
+                    .map(|p| format!("`{}`", p.name))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+            ),
+        ));
     }
     Ok(())
 }

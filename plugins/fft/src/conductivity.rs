@@ -12,8 +12,8 @@ use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
 use crate::common::{
-    check_interfaces, composite_table, mirrored_cell, phases_present, resolve, solve_failure,
-    unused_keys, validate_solver, Discretization, Precision, Solver, FFT_BOUNDARIES,
+    check_interfaces, check_keys, composite_table, mirrored_cell, phases_present, resolve,
+    solve_failure, unused_keys, validate_solver, Discretization, Precision, Solver, FFT_BOUNDARIES,
 };
 use crate::kernel::composite::{laminate_conductivity, majority_pore_conductivity, Composite};
 use crate::kernel::scalar::{bytes_per_voxel, Scalar};
@@ -156,6 +156,11 @@ impl TypedStage for ConductivityFft {
         inputs: &InputMetas,
     ) -> Result<Preflight<Grid>, StageError> {
         validate_solver(p.tolerance, p.max_iterations, p.stagnation_window)?;
+        check_keys(
+            "conductivities",
+            &p.conductivities,
+            inputs.get("image").and_then(|m| m.phases.as_deref()),
+        )?;
         if p.load_cases.is_empty() {
             return Err(StageError::param(
                 "load_cases",

@@ -13,8 +13,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
 
 use crate::common::{
-    check_interfaces, composite_table, mirrored_cell, phases_present, resolve, solve_failure,
-    unused_keys, validate_solver, Discretization, Material, Precision, Solver, FFT_BOUNDARIES,
+    check_interfaces, check_keys, composite_table, mirrored_cell, phases_present, resolve,
+    solve_failure, unused_keys, validate_solver, Discretization, Material, Precision, Solver,
+    FFT_BOUNDARIES,
 };
 use crate::kernel::composite::{laminate_stiffness, majority_pore_stiffness, Composite, M6};
 use crate::kernel::constants::{self, Class, ENGINEERING_NAMES};
@@ -253,6 +254,11 @@ impl TypedStage for ElasticityFft {
         inputs: &InputMetas,
     ) -> Result<Preflight<ElasticityPlan>, StageError> {
         check_params(p)?;
+        check_keys(
+            "materials",
+            &p.materials,
+            inputs.get("image").and_then(|m| m.phases.as_deref()),
+        )?;
         let grid = grainpipe_core::announced_grid(inputs, "image")?;
         let bc = p.boundary.resolve(grid.periodic, &FFT_BOUNDARIES)?;
         let grid = check_interfaces(&p.interface, p.discretization.scheme(), inputs, &grid)?;

@@ -160,6 +160,55 @@ fn moduli_out_of_range_fail_loudly() {
     assert!(err.contains("out of floating-point range"), "{err}");
 }
 
+/// Issue 36: a phase name the image will not have (`grian` for `grain`) passed `pipe validate`
+/// and failed at run time after the upstream steps. voxelize.packing announces its phases
+/// (`pore`, `sand` here), so preflight names the phase without an entry and the likely typo.
+#[test]
+fn a_misspelt_phase_is_refused_at_preflight_with_a_suggestion() {
+    for (stage, with, key) in [
+        (
+            "elasticity.fft",
+            "{ materials: { snad: { E: 66.9 GPa, nu: 0.25 } } }",
+            "materials",
+        ),
+        (
+            "conductivity.fft",
+            "{ conductivities: { snad: 1.4 W/(m K) } }",
+            "conductivities",
+        ),
+    ] {
+        let yaml = format!(
+            r#"
+name: t
+stages:
+  - id: pack
+    use: packing.rsa
+    with: {{ size: [100 um, 100 um, 100 um], radius: {{ kind: fixed, value: 20 um }}, volume_fraction: 0.2 }}
+  - id: voxels
+    use: voxelize.packing
+    in: {{ packing: pack.packing }}
+    with: {{ voxel_size: 10 um, phase_name: sand }}
+  - id: out
+    use: {stage}
+    in: {{ image: voxels.image }}
+    with: {with}
+"#
+        );
+        let reg = registry();
+        let doc = grainpipe_core::pipeline::PipelineDoc::parse("t.yaml".as_ref(), yaml).unwrap();
+        let Err(e) = grainpipe_core::engine::plan(&doc, &reg, &Default::default()) else {
+            panic!("{stage}: planned")
+        };
+        let e = e.to_string();
+        assert!(
+            e.contains(key)
+                && e.contains("phase `sand` (label 1)")
+                && e.contains("did you mean `sand` for `snad`?"),
+            "{stage}: {e}"
+        );
+    }
+}
+
 /// Issue 35: every modulus the solver uses is guarded, not only the given ones. nu = -0.999999
 /// made G = 3.3e16 Pa (past the 1e15 guard on E) and an indefinite, non-symmetric "stiffness";
 /// E = 5e-324 underflowed to a void and was reported as "no solid voxel".

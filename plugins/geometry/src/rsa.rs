@@ -169,6 +169,21 @@ impl TypedStage for Rsa {
                     ),
                 ));
             }
+            // A sphere wider than the period overlaps its own image: a 25 mm radius in a
+            // 400 um periodic box was "packed" at a volume fraction of 1 022 653.
+            if periodic && 2.0 * rmax > len {
+                return Err(StageError::param(
+                    "radius",
+                    format!(
+                        "the largest sphere ({} across) is wider than the periodic box along {} \
+                         ({}) and would overlap its own image; check the unit of the radius \
+                         or enlarge `size`",
+                        grainpipe_core::units::format_length(2.0 * rmax),
+                        ["x", "y", "z"][a],
+                        grainpipe_core::units::format_length(len)
+                    ),
+                ));
+            }
         }
         let volume: f64 = size.iter().product();
         let count = (p.volume_fraction * volume / mean_sphere_volume(&p.radius)).ceil();

@@ -121,6 +121,29 @@ fn rsa_refuses_monodisperse_fraction_above_jamming_limit() {
     }
 }
 
+/// Issue 36: a 25 mm radius in a 400 um periodic box ran and reported a volume fraction of
+/// 1 022 653. A sphere wider than the period is refused at preflight, naming both lengths.
+#[test]
+fn rsa_refuses_a_sphere_wider_than_the_periodic_box() {
+    let p = RsaParams {
+        size: [Q::new(400e-6); 3],
+        radius: SizeDistribution::Fixed {
+            value: Q::new(25e-3),
+        },
+        ..Default::default()
+    };
+    match Rsa.preflight(&p, &Default::default()) {
+        Err(StageError::InvalidParam { key, message }) => {
+            assert_eq!(key, "radius");
+            assert!(
+                message.contains("(50 mm across) is wider than the periodic box along x (400 um)"),
+                "{message}"
+            );
+        }
+        other => panic!("expected a parameter error, got {other:?}"),
+    }
+}
+
 #[test]
 fn rsa_jams_loudly_on_unreachable_polydisperse_target() {
     // A narrow polydisperse law behaves like monodisperse spheres: 0.55 is far beyond

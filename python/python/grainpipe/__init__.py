@@ -12,6 +12,7 @@ pandas and pyvista. See docs/python.md.
 from __future__ import annotations
 
 import json
+import operator
 import os
 import warnings
 from typing import Any, Callable, Iterable, Mapping, Optional, Union
@@ -61,11 +62,40 @@ Pipeline = Union[str, "os.PathLike[str]", Mapping[str, Any]]
 PSEUDO_PATH = "<python>"
 
 
+def _plain(value: Any) -> Any:
+    """JSON for what json cannot write itself: numpy scalars (``np.float32(0.3)``,
+    ``np.int64(4)``) as their Python value and numpy arrays as lists, both through
+    ``.tolist()``/``.item()``, so values computed with numpy pass as parameters."""
+    for method in ("tolist", "item"):
+        convert = getattr(value, method, None)
+        if callable(convert) and hasattr(value, "dtype"):
+            return convert()
+    raise TypeError(f"{type(value).__name__} is not a parameter value (give a number, text, "
+                    "a list or a dict)")
+
+
+def _json(value: Any, **kw: Any) -> str:
+    return json.dumps(value, default=_plain, **kw)
+
+
+def _targets(targets: Optional[Iterable[str]]) -> list[str]:
+    """Step ids; one id given as a string is one target (``list("dem")`` would be three)."""
+    if targets is None:
+        return []
+    if isinstance(targets, str):
+        return [targets]
+    out = list(targets)
+    for t in out:
+        if not isinstance(t, str):
+            raise TypeError(f"targets must be step ids (strings), got {t!r}")
+    return out
+
+
 def _source(pipeline: Pipeline) -> tuple[str, bool]:
     """(path or YAML text, is_text). A dict is written as JSON, which is valid YAML, so the
     same parser (and its error locations) applies."""
     if isinstance(pipeline, Mapping):
-        return json.dumps(pipeline, indent=2), True
+        return _json(pipeline, indent=2), True
     if isinstance(pipeline, os.PathLike):
         return os.fspath(pipeline), False
     if isinstance(pipeline, str):
@@ -81,7 +111,7 @@ def _overrides(set: Optional[Mapping[str, Any]]) -> list[str]:
     Strings pass as written (so units such as "25 um" work); other values as JSON (YAML)."""
     out = []
     for key, value in (set or {}).items():
-        text = value if isinstance(value, str) else json.dumps(value)
+        text = value if isinstance(value, str) else _json(value)
         out.append(f"{key}={text}")
     return out
 
@@ -193,8 +223,8 @@ def run(
         is_text,
         PSEUDO_PATH,
         _overrides(set),
-        seed,
-        list(targets or []),
+        None if seed is None else operator.index(seed),
+        _targets(targets),
         exports,
         None if out is None else os.fspath(out),
         [os.fspath(p) for p in plugin_dirs],
@@ -228,8 +258,8 @@ def validate(
         is_text,
         PSEUDO_PATH,
         _overrides(set),
-        seed,
-        list(targets or []),
+        None if seed is None else operator.index(seed),
+        _targets(targets),
         exports,
         None if out is None else os.fspath(out),
         [os.fspath(p) for p in plugin_dirs],
