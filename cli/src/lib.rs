@@ -70,6 +70,11 @@ pub fn plan_pipeline(
         doc.seed = s;
     }
     let mut targets = req.targets.clone();
+    if !targets.is_empty() {
+        // As `make TARGET`: the targets and what they need run, and only the exports those
+        // steps produce are written (every export used to pull in its whole chain).
+        keep_exports_of(&mut doc, &targets);
+    }
     if req.skip_exports {
         doc.exports.clear();
         // Without exports nothing would be needed.
@@ -86,6 +91,24 @@ pub fn plan_pipeline(
     };
     let plan = grainpipe_core::engine::plan(&doc, registry, &opts)?;
     Ok((doc, plan))
+}
+
+/// Drops the exports whose step is not a target or upstream of one. Unknown target ids are
+/// left for the planner to report (with a suggestion).
+pub fn keep_exports_of(doc: &mut PipelineDoc, targets: &[String]) {
+    let mut needed: std::collections::HashSet<&str> = std::collections::HashSet::new();
+    let mut todo: Vec<&str> = targets.iter().map(String::as_str).collect();
+    while let Some(id) = todo.pop() {
+        if !needed.insert(id) {
+            continue;
+        }
+        if let Some((_, step)) = doc.step(id) {
+            todo.extend(step.inputs.values().map(|i| i.source.step.as_str()));
+        }
+    }
+    let needed: std::collections::HashSet<String> =
+        needed.into_iter().map(str::to_string).collect();
+    doc.exports.retain(|e| needed.contains(&e.from.step));
 }
 
 /// Loads plugin libraries into a registry, each library once.

@@ -45,8 +45,8 @@ struct PipelineArgs {
     /// Override the pipeline's seed.
     #[arg(long)]
     seed: Option<u64>,
-    /// Compute this step even if no export needs it (repeatable). Targets are added to what
-    /// the exports need: every export is still written, with the steps it depends on.
+    /// Run this step and the steps it needs, and nothing else (repeatable), as `make TARGET`:
+    /// only the exports of those steps are written. Without --target every export is.
     #[arg(long = "target", value_name = "STEP")]
     targets: Vec<String>,
 }
@@ -356,6 +356,9 @@ fn load_and_plan(
     }
     if let Some(s) = args.seed {
         doc.seed = s;
+    }
+    if !args.targets.is_empty() {
+        grainpipe_cli::keep_exports_of(&mut doc, &args.targets);
     }
     let opts = PlanOptions {
         targets: args.targets.clone(),

@@ -196,8 +196,9 @@ def run(
     pipeline: a YAML file path, YAML text, or a dict with the same structure.
     set: parameter overrides ``{"step.key": value}`` (``pipe run --set``); strings may carry
         units ("25 um").
-    seed: overrides the pipeline's seed. targets: steps to compute even if no export needs
-        them. cache: True (``.grainpipe-cache``), False, or a cache directory.
+    seed: overrides the pipeline's seed. targets: a step id or a list of them: only these
+        steps and the steps they need run, and only their exports are written (``pipe run
+        --target``). cache: True (``.grainpipe-cache``), False, or a cache directory.
     exports: write the pipeline's ``export:`` files (default, like ``pipe run``); with False
         nothing is written and every step (or just ``targets``) is computed.
     out: move the exports into this directory (``pipe run --out``).
