@@ -309,6 +309,7 @@ fn main() -> ExitCode {
                     wall_s: clock.elapsed().as_secs_f64(),
                     result: result.as_ref().map_err(|e| e.to_string()),
                     written: observer.written().to_vec(),
+                    warnings: observer.warnings(),
                 };
                 match grainpipe_report::write_run_dir(dir, &end) {
                     Ok(()) if !quiet => {

@@ -63,6 +63,9 @@ struct StepReporter {
     announce: Arc<Mutex<Option<String>>>,
     /// The furthest fraction shown so far, as (done, total).
     shown: Mutex<(u64, u64)>,
+    /// The step's id and the run's warnings (step, text), for the run record.
+    step: String,
+    warnings: Arc<Mutex<Vec<(String, String)>>>,
 }
 
 impl StepReporter {
@@ -122,6 +125,10 @@ impl Reporter for StepReporter {
         match level {
             Level::Warn => {
                 self.announce();
+                self.warnings
+                    .lock()
+                    .unwrap_or_else(|p| p.into_inner())
+                    .push((self.step.clone(), text.to_string()));
                 self.bar.suspend(|| eprintln!("warning: {text}"))
             }
             Level::Info if !self.quiet => {
@@ -164,6 +171,8 @@ pub struct TerminalObserver {
     cache_dir: Option<std::path::PathBuf>,
     /// The held-back "running" line of the current step, shared with its reporter.
     announce: Arc<Mutex<Option<String>>>,
+    /// Every warning of the run, as (step, text), shared with the reporters.
+    warnings: Arc<Mutex<Vec<(String, String)>>>,
 }
 
 impl TerminalObserver {
@@ -176,7 +185,16 @@ impl TerminalObserver {
             written: Vec::new(),
             cache_dir: None,
             announce: Arc::new(Mutex::new(None)),
+            warnings: Arc::new(Mutex::new(Vec::new())),
         }
+    }
+
+    /// The warnings the steps gave so far, as (step, text), in order.
+    pub fn warnings(&self) -> Vec<(String, String)> {
+        self.warnings
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     /// The cache directory the run uses (`RunOptions::cache_dir`): a step with an entry
@@ -268,6 +286,8 @@ impl Observer for TerminalObserver {
             cancel: self.cancel.clone(),
             announce: self.announce.clone(),
             shown: Mutex::new((0, 0)),
+            step: step.id.clone(),
+            warnings: self.warnings.clone(),
         })
     }
 

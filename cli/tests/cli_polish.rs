@@ -388,3 +388,42 @@ fn a_closed_stdout_is_not_a_panic() {
         "exit {status:?}: {err}"
     );
 }
+
+/// Issue 36: warnings were printed but not recorded, and the report said "completed" in green.
+/// A run whose elasticity step warns (a material, `binder`, that matches no phase) records the
+/// warning in run.json with its step, and the page shows it at the top.
+#[test]
+fn warnings_are_recorded_in_the_run_and_shown_on_its_page() {
+    let dir = tempfile::tempdir().unwrap();
+    let yaml = SMALL.replace(
+        "    with: { voxels_per_diameter: 8 }\nexport:\n",
+        "    with: { voxels_per_diameter: 8, phase_name: sand }\n  - id: stiff\n    use: elasticity.fft\n    \
+         in: { image: voxels.image }\n    with: { load_cases: [xx] }\nexport:\n  - { from: stiff.stiffness, to: out/c.json }\n",
+    );
+    assert!(yaml.contains("elasticity.fft"), "{yaml}");
+    std::fs::write(dir.path().join("p.yaml"), yaml).unwrap();
+    let (code, _, err) = pipe(
+        &[
+            "run",
+            "p.yaml",
+            "--no-cache",
+            "--out",
+            "out/run",
+            "--report",
+        ],
+        dir.path(),
+    );
+    assert_eq!(code, 0, "{err}");
+    assert!(err.contains("warning: materials [\"binder\"]"), "{err}");
+    let rec: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("out/run/run.json")).unwrap(),
+    )
+    .unwrap();
+    let warnings = rec["warnings"].as_array().expect("warnings recorded");
+    assert_eq!(warnings.len(), 1, "{warnings:?}");
+    assert_eq!(warnings[0]["step"], "stiff");
+    assert!(warnings[0]["text"].as_str().unwrap().contains("binder"));
+    let page = std::fs::read_to_string(dir.path().join("out/run/report.html")).unwrap();
+    assert!(page.contains("completed with 1 warning"), "status line");
+    assert!(page.contains("<section id=\"warnings\""));
+}

@@ -115,7 +115,8 @@ img.pic{image-rendering:pixelated;border:1px solid #bbb;background:#fff}
 .legend span.sw{display:inline-block;width:1em;height:1em;border:1px solid #888;vertical-align:middle;margin:0 .3em 0 1em}
 .cbar{display:inline-block;width:220px;height:12px;border:1px solid #888;vertical-align:middle;margin:0 .5em}
 .note{color:#555;font-size:.9em}
-.bad{color:#b00020;font-weight:bold}.ok{color:#1b7f3a;font-weight:bold}
+.bad{color:#b00020;font-weight:bold}.ok{color:#1b7f3a;font-weight:bold}.warn{color:#9a5b00;font-weight:bold}\
+.warnings{border-left:4px solid #9a5b00;background:#fff8e6;padding:.3em 1em}
 pre{background:#f7f7f7;border:1px solid #ddd;padding:.6em;overflow:auto;font-size:.85em;max-height:30em}
 details{margin:.4em 0}summary{cursor:pointer;font-weight:600}
 nav a{margin-right:1em}

@@ -24,7 +24,7 @@ pub mod sweep;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
-pub use record::{default_run_dir, write_run_dir, RunEnd, StepRecord};
+pub use record::{default_run_dir, write_run_dir, RunEnd, StepRecord, WarningRecord};
 
 /// `pipe report`.
 #[derive(clap::Args, Debug)]

@@ -719,13 +719,25 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
 
     let mut body = String::new();
     let ok = rec.status == "ok";
+    let warned = !rec.warnings.is_empty();
+    // A run that warned did not simply "complete": the status says so in amber.
+    let (class, status) = match (ok, warned) {
+        (false, _) => ("bad", "FAILED".to_string()),
+        (true, true) => (
+            "warn",
+            format!(
+                "completed with {} warning{}",
+                rec.warnings.len(),
+                if rec.warnings.len() == 1 { "" } else { "s" }
+            ),
+        ),
+        (true, false) => ("ok", "completed".to_string()),
+    };
     let _ = write!(
         body,
-        "<header id=\"top\"><h1>{} <span class=\"{}\" id=\"status\">{}</span></h1><p>{}</p>\
+        "<header id=\"top\"><h1>{} <span class=\"{class}\" id=\"status\">{status}</span></h1><p>{}</p>\
          <nav>",
         esc(&rec.pipeline_name),
-        if ok { "ok" } else { "bad" },
-        if ok { "completed" } else { "FAILED" },
         esc(&rec.description)
     );
     for (id, t, n) in [
@@ -746,6 +758,9 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
         }
     }
     body.push_str("</nav></header>\n");
+    if warned {
+        body.push_str(&warnings_block(&rec.warnings));
+    }
 
     // Summary: the run and the headline numbers.
     let peak = rec.steps.iter().filter_map(|s| s.peak_heap_bytes).max();
@@ -933,7 +948,17 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
                     "<span style=\"display:inline-block;background:#2e68b4;height:.8em;width:{:.0}px\"></span>",
                     200.0 * s.wall_s / tmax.max(f64::MIN_POSITIVE)
                 ),
-                if s.from_cache { "cache" } else { "computed" }.into(),
+                {
+                    let how = if s.from_cache { "cache" } else { "computed" };
+                    let n = rec.warnings.iter().filter(|w| w.step == s.step).count();
+                    match n {
+                        0 => how.to_string(),
+                        _ => format!(
+                            "{how}, <a class=\"warn\" href=\"#warnings\">{n} warning{}</a>",
+                            if n == 1 { "" } else { "s" }
+                        ),
+                    }
+                },
                 s.peak_bytes.map(html::bytes).unwrap_or_else(|| "–".into()),
                 s.peak_heap_bytes
                     .map(html::bytes)
@@ -1038,6 +1063,21 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
         esc(&rec.grainpipe_version)
     );
     html::page(&format!("{} — grainpipe report", rec.pipeline_name), &body)
+}
+
+/// The warnings of a run, at the top of its page: one line per warning, with its step.
+fn warnings_block(warnings: &[crate::record::WarningRecord]) -> String {
+    let mut out = String::from("<section id=\"warnings\" class=\"warnings\"><h2>Warnings</h2><ul>");
+    for w in warnings {
+        let _ = write!(
+            out,
+            "<li><span class=\"step\">{}</span>: {}</li>",
+            esc(&w.step),
+            esc(&w.text)
+        );
+    }
+    out.push_str("</ul></section>\n");
+    out
 }
 
 #[cfg(test)]

@@ -74,6 +74,17 @@ pub struct RunRecord {
     pub provenance: Vec<StepProvenance>,
     pub host: String,
     pub threads: usize,
+    /// Every warning the stages gave, in order (absent in records written before it was
+    /// recorded).
+    #[serde(default)]
+    pub warnings: Vec<WarningRecord>,
+}
+
+/// One warning of a run: the step that gave it and its text.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WarningRecord {
+    pub step: String,
+    pub text: String,
 }
 
 /// What `pipe run` knows when a run ends.
@@ -88,6 +99,8 @@ pub struct RunEnd<'a> {
     pub result: Result<&'a RunResult, String>,
     /// Paths the run wrote.
     pub written: Vec<PathBuf>,
+    /// The warnings the steps gave, as (step, text).
+    pub warnings: Vec<(String, String)>,
 }
 
 /// The run directory of a pipeline run without `--out`: the deepest directory containing
@@ -254,6 +267,14 @@ pub fn record(end: &RunEnd) -> RunRecord {
         threads: std::thread::available_parallelism()
             .map(|n| n.get())
             .unwrap_or(1),
+        warnings: end
+            .warnings
+            .iter()
+            .map(|(step, text)| WarningRecord {
+                step: step.clone(),
+                text: text.clone(),
+            })
+            .collect(),
     }
 }
 

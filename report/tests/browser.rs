@@ -311,6 +311,10 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
         }],
         host: "test".into(),
         threads: 2,
+        warnings: vec![grainpipe_report::WarningRecord {
+            step: "pack".into(),
+            text: "radii: KS test against the target law failed (p = 0.003 < 0.01)".into(),
+        }],
     };
     (rec, ReportData { items }, pics)
 }
@@ -345,12 +349,17 @@ fn run_report_in_a_browser() {
     assert!(html.contains("9.48 %"));
     assert!(html.contains("<span class=\"symmetry-error\">0</span>"));
     assert!(html.contains("100 rows; the first and last 20 shown"));
+    // Issue 36: warnings are shown at the top and per step, and the status says so.
+    assert!(html.contains("id=\"status\">completed with 1 warning</span>"));
+    assert!(html.contains("<span class=\"step\">pack</span>: radii: KS test"));
+    assert!(html.contains("cache, <a class=\"warn\" href=\"#warnings\">1 warning</a>"));
     if skip() {
         return;
     }
     let shot = tmp.path().join("run.png");
     let dom = browse(&page, &shot, &tmp.path().join("profile"));
     for id in [
+        "warnings",
         "summary",
         "microstructure",
         "packing",
