@@ -327,9 +327,14 @@ pub fn volume_value_bytes(dtype: &str, elem_bytes: usize) -> usize {
     let signed8 = ["Integer(", "Int8", "(I8)", "i8"]
         .iter()
         .any(|s| dtype.contains(s));
+    // u32 (and a 32-bit TIFF page, which may be u32) widens to f64.
+    let unsigned32 = ["UInt32", "Unsigned(", "(U32)", "32-bit"]
+        .iter()
+        .any(|s| dtype.contains(s));
     match elem_bytes {
         1 if !signed8 => 1,
         1 | 2 => 4,
+        4 if !unsigned32 => 4,
         _ => 8,
     }
 }
