@@ -324,7 +324,7 @@ pub fn check_declared(what: &str, bytes: Option<u64>) -> Result<(), String> {
 /// signed 8-bit and 16-bit become at most i32, 32-bit stays or becomes f64 (u32), 64-bit
 /// stays 64-bit.
 pub fn volume_value_bytes(dtype: &str, elem_bytes: usize) -> usize {
-    let signed8 = ["Integer(", "Int8", "(I8)", "i8"]
+    let signed8 = !["u8", "UInt8", "Unsigned(", "(U8)", "Boolean"]
         .iter()
         .any(|s| dtype.contains(s));
     // u32 (and a 32-bit TIFF page, which may be u32) widens to f64.
