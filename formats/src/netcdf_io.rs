@@ -314,8 +314,9 @@ pub fn scan_netcdf_variable(
     let mut a = 0;
     while a < lens[0] {
         let b = (a + step).min(lens[0]);
-        let mut ext: Vec<std::ops::Range<usize>> = vec![a..b];
-        ext.extend(lens[1..].iter().map(|&l| 0..l));
+        let ext: Vec<std::ops::Range<usize>> = std::iter::once(a..b)
+            .chain(lens[1..].iter().map(|&l| 0..l))
+            .collect();
         macro_rules! feed {
             ($t:ty) => {{
                 let block: Vec<$t> = v.get_values(ext).map_err(|e| at(nc(e)))?;
