@@ -231,7 +231,11 @@ fn exports_writing_one_file_implicitly_or_through_dot_dot_are_refused() {
             "{IMAGE}export:\n  - {{ from: vox.image, to: out/A.vti }}\n  - {{ from: vox.image, \
              to: out/sub/../A.vti }}\n"
         ),
-        &["p.yaml:13", "out/sub/../A.vti", "(the export at line 12)"],
+        &[
+            "p.yaml:13",
+            "out/sub/../A.vti",
+            "already the target of the export at line 12",
+        ],
     );
     // The `.raw` a `.mhd` writes beside it, and a `.raw` export.
     refused(

@@ -334,14 +334,9 @@ fn plan_exports(
         let mine = written_paths(exporter.as_ref(), &e.to, &options);
         for prev in &exports {
             let theirs = written_paths(prev.exporter.as_ref(), &prev.path, &prev.options);
-            if let Some(m) = collision(&e.to, &mine, &prev.path, &theirs) {
+            if let Some(m) = collision(&e.to, &mine, &prev.path, &theirs, prev.loc.line) {
                 errs.push(
-                    err(
-                        doc,
-                        e.to_loc,
-                        format!("{m} (the export at line {})", prev.loc.line),
-                    )
-                    .with_help(Some(
+                    err(doc, e.to_loc, m).with_help(Some(
                         "give each export its own file name (a `.mhd` also writes the `.raw` \
                          beside it, a `.csv` its `.csv.json`, a TIFF `stack: directory` the \
                          directory named like the file)"
@@ -381,44 +376,52 @@ fn written_paths(
         .collect()
 }
 
-/// Why two exports (`to`, writing `mine`; `prev_to`, writing `theirs`) would overwrite each
-/// other, or `None`: one file written by both, or a file inside a directory the other
-/// replaces as a whole.
+/// Why two exports (`to`, writing `mine`; `prev_to` at line `line`, writing `theirs`) would
+/// overwrite each other, or `None`: one file written by both, or a file inside a directory
+/// the other replaces as a whole.
 fn collision(
     to: &Path,
     mine: &[crate::registry::WrittenPath],
     prev_to: &Path,
     theirs: &[crate::registry::WrittenPath],
+    line: u64,
 ) -> Option<String> {
-    let shown = |p: &Path, target: &Path| {
-        if normalised_path(target) == p {
-            format!("`{}`", target.display())
-        } else {
-            format!("`{}` (written with it)", p.display())
-        }
-    };
+    let target = |p: &Path, t: &Path| normalised_path(t) == p;
     for a in mine {
         for b in theirs {
-            let clash = a.path == b.path
-                || (b.directory && a.path.starts_with(&b.path))
-                || (a.directory && b.path.starts_with(&a.path));
-            if clash {
-                let what = if a.path == b.path {
-                    "is also written by"
-                } else if b.directory && a.path.starts_with(&b.path) {
-                    "lies in a directory replaced as a whole by"
-                } else {
-                    "would replace a directory holding a file of"
-                };
+            let inside_b = b.directory && a.path != b.path && a.path.starts_with(&b.path);
+            let inside_a = a.directory && a.path != b.path && b.path.starts_with(&a.path);
+            if a.path != b.path && !inside_a && !inside_b {
+                continue;
+            }
+            if a.path == b.path && target(&a.path, to) && target(&b.path, prev_to) {
                 return Some(format!(
-                    "the export to `{}` writes {}, which {what} the export to `{}` ({}); one \
-                     would overwrite the other",
+                    "`{}` is already the target of the export at line {line} (`{}`); the \
+                     second would overwrite the first",
                     to.display(),
-                    shown(&a.path, to),
-                    prev_to.display(),
-                    shown(&b.path, prev_to),
+                    prev_to.display()
                 ));
             }
+            let what = |p: &Path, t: &Path| {
+                if target(p, t) {
+                    format!("`{}`", t.display())
+                } else {
+                    format!("`{}` (written with `{}`)", p.display(), t.display())
+                }
+            };
+            let (mine_shown, theirs_shown) = (what(&a.path, to), what(&b.path, prev_to));
+            let relation = if a.path == b.path {
+                "is also written by"
+            } else if inside_b {
+                "lies in a directory replaced as a whole by"
+            } else {
+                "is a directory, replaced as a whole, that holds a file of"
+            };
+            return Some(format!(
+                "the export to `{}` writes {mine_shown}, which {relation} the export at line \
+                 {line} ({theirs_shown}); one would overwrite the other",
+                to.display()
+            ));
         }
     }
     None
