@@ -224,7 +224,12 @@ fn main() -> ExitCode {
                 }
             }
             for e in &plan.exports {
-                println!("  -> {} ({})", e.path.display(), e.exporter.name());
+                println!(
+                    "  -> {} ({}) ~{}",
+                    e.path.display(),
+                    e.exporter.name(),
+                    engine::human_bytes(engine::export_memory_bytes(&plan, e))
+                );
             }
             println!(
                 "estimated memory: {}",
@@ -280,7 +285,11 @@ fn main() -> ExitCode {
             let flag = cancel.clone();
             // First Ctrl-C asks stages to stop at their next progress report; a second one exits.
             let _ = ctrlc::set_handler(move || {
+                // Writers (exports) poll the core's flag; stages poll `cancel`.
+                grainpipe_core::fsutil::request_interrupt();
                 if flag.swap(true, Ordering::SeqCst) {
+                    // No half-written `.grainpipe-tmp` file is left behind.
+                    grainpipe_core::fsutil::remove_live_temps();
                     std::process::exit(130);
                 }
                 eprintln!("\ninterrupted: stopping at the next checkpoint (Ctrl-C again to abort)");

@@ -63,7 +63,8 @@ pub struct Plan {
     /// Execution order (indices into `steps`).
     pub order: Vec<usize>,
     pub exports: Vec<PlannedExport>,
-    /// Sum of the preflight memory estimates of the steps that will run [bytes].
+    /// Sum of the preflight memory estimates of the steps that will run and of the exports
+    /// ([`Exporter::memory_bytes`]) [bytes].
     pub memory_bytes: u64,
 }
 
@@ -113,6 +114,7 @@ pub fn plan(
     let (mut steps, exec_order, mut memory) =
         preflight_steps(doc, &resolved, &wiring, &order, &needed, &mut errs);
     check_export_outputs(doc, &steps, &exports, &mut errs);
+    // Each export's write memory (its exporter's preflight) joins its producing step.
     memory = memory.saturating_add(preflight_exports(doc, &mut steps, &exports, &mut errs));
     check_memory(doc, opts, memory, &mut errs);
     PipelineError::collect(errs)?;
@@ -319,31 +321,33 @@ fn plan_exports(
             continue;
         };
         let before = errs.len();
-        if let Err((m, help)) = check_export_path(&e.to) {
-            errs.push(err(doc, e.to_loc, m).with_help(help));
-        } else if let Some(prev) = exports.iter().find(|p| {
-            let theirs = p.exporter.written_paths(&p.path);
-            exporter
-                .written_paths(&e.to)
-                .iter()
-                .any(|mine| theirs.iter().any(|t| same_path(t, mine)))
-        }) {
-            errs.push(
-                err(
-                    doc,
-                    e.to_loc,
-                    format!(
-                        "`{}` is already the target of the export at line {}; the second \
-                         would overwrite the first",
-                        e.to.display(),
-                        prev.loc.line
-                    ),
-                )
-                .with_help(Some("give each export its own file name".into())),
-            );
-        }
+        let path_ok = match check_export_path(&e.to) {
+            Err((m, help)) => {
+                errs.push(err(doc, e.to_loc, m).with_help(help));
+                false
+            }
+            Ok(()) => true,
+        };
         let options = export_options(doc, e, exporter.as_ref(), errs);
-        if let (Some(options), true) = (options, errs.len() == before) {
+        let Some(options) = options.filter(|_| path_ok) else {
+            continue;
+        };
+        let mine = written_paths(exporter.as_ref(), &e.to, &options);
+        for prev in &exports {
+            let theirs = written_paths(prev.exporter.as_ref(), &prev.path, &prev.options);
+            if let Some(m) = collision(&e.to, &mine, &prev.path, &theirs, prev.loc.line) {
+                errs.push(
+                    err(doc, e.to_loc, m).with_help(Some(
+                        "give each export its own file name (a `.mhd` also writes the `.raw` \
+                         beside it, a `.csv` its `.csv.json`, a TIFF `stack: directory` the \
+                         directory named like the file)"
+                            .into(),
+                    )),
+                );
+                break;
+            }
+        }
+        if errs.len() == before {
             exports.push(PlannedExport {
                 producer,
                 port,
@@ -355,6 +359,113 @@ fn plan_exports(
         }
     }
     exports
+}
+
+/// What an export writes, each path made absolute and normalised ([`normalised_path`]).
+fn written_paths(
+    exporter: &dyn Exporter,
+    path: &Path,
+    options: &crate::registry::ExportOptions,
+) -> Vec<crate::registry::WrittenPath> {
+    exporter
+        .written_paths(path, options)
+        .into_iter()
+        .map(|w| crate::registry::WrittenPath {
+            path: normalised_path(&w.path),
+            directory: w.directory,
+        })
+        .collect()
+}
+
+/// Why two exports (`to`, writing `mine`; `prev_to` at line `line`, writing `theirs`) would
+/// overwrite each other, or `None`: one file written by both, or a file inside a directory
+/// the other replaces as a whole.
+fn collision(
+    to: &Path,
+    mine: &[crate::registry::WrittenPath],
+    prev_to: &Path,
+    theirs: &[crate::registry::WrittenPath],
+    line: u64,
+) -> Option<String> {
+    let target = |p: &Path, t: &Path| normalised_path(t) == p;
+    for a in mine {
+        for b in theirs {
+            let inside_b = b.directory && a.path != b.path && a.path.starts_with(&b.path);
+            let inside_a = a.directory && a.path != b.path && b.path.starts_with(&a.path);
+            if a.path != b.path && !inside_a && !inside_b {
+                continue;
+            }
+            if a.path == b.path && target(&a.path, to) && target(&b.path, prev_to) {
+                return Some(format!(
+                    "`{}` is already the target of the export at line {line} (`{}`); the \
+                     second would overwrite the first",
+                    to.display(),
+                    prev_to.display()
+                ));
+            }
+            let what = |p: &Path, t: &Path| {
+                if target(p, t) {
+                    format!("`{}`", t.display())
+                } else {
+                    format!("`{}` (written with `{}`)", p.display(), t.display())
+                }
+            };
+            let (mine_shown, theirs_shown) = (what(&a.path, to), what(&b.path, prev_to));
+            let relation = if a.path == b.path {
+                "is also written by"
+            } else if inside_b {
+                "lies in a directory replaced as a whole by"
+            } else {
+                "is a directory, replaced as a whole, that holds a file of"
+            };
+            return Some(format!(
+                "the export to `{}` writes {mine_shown}, which {relation} the export at line \
+                 {line} ({theirs_shown}); one would overwrite the other",
+                to.display()
+            ));
+        }
+    }
+    None
+}
+
+/// The absolute, normalised form of an export path, so that `out/x.vti`,
+/// `./out/../out/x.vti` and `/abs/out/x.vti` compare equal: the longest existing ancestor is
+/// resolved by the file system (symbolic links, `..` across them), the rest lexically (`.`
+/// dropped, `..` removes the previous component).
+pub fn normalised_path(p: &Path) -> PathBuf {
+    use std::path::Component;
+    let absolute = if p.is_absolute() {
+        p.to_path_buf()
+    } else {
+        std::env::current_dir()
+            .map(|d| d.join(p))
+            .unwrap_or_else(|_| p.to_path_buf())
+    };
+    // Longest existing prefix, resolved by the file system.
+    let comps: Vec<Component> = absolute.components().collect();
+    let mut base = PathBuf::new();
+    let mut rest = comps.len();
+    for k in (1..=comps.len()).rev() {
+        let prefix: PathBuf = comps[..k].iter().collect();
+        if let Ok(c) = std::fs::canonicalize(&prefix) {
+            base = c;
+            rest = k;
+            break;
+        }
+    }
+    if base.as_os_str().is_empty() {
+        rest = 0;
+    }
+    for c in &comps[rest..] {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir => {
+                base.pop();
+            }
+            other => base.push(other.as_os_str()),
+        }
+    }
+    base
 }
 
 /// The writer of an export: by `format:` or by extension, and it must accept the kind (among
@@ -530,6 +641,28 @@ fn preflight_steps(
         exec_order.push(i);
     }
     (planned, exec_order, memory)
+}
+
+/// What the exports need while they write, from what their producers announced: part of
+/// the plan's memory estimate (an exporter that builds its file in memory needs about the
+/// file's size; streaming ones little).
+fn export_memory(planned: &[Option<PlannedStep>], exports: &[PlannedExport]) -> u64 {
+    exports
+        .iter()
+        .filter_map(|e| {
+            let meta = planned[e.producer]
+                .as_ref()?
+                .preflight
+                .outputs
+                .get(&e.port)?;
+            e.exporter.preflight(meta, &e.options).ok()
+        })
+        .fold(0u64, u64::saturating_add)
+}
+
+/// Peak memory of one planned export [bytes] (`pipe validate` shows it).
+pub fn export_memory_bytes(plan: &Plan, e: &PlannedExport) -> u64 {
+    export_memory(&plan.steps, std::slice::from_ref(e))
 }
 
 /// Every export's port must be among what its producer's preflight announced.
@@ -723,27 +856,6 @@ fn check_export_path(path: &Path) -> Result<(), (String, Option<String>)> {
         }
     }
     Ok(())
-}
-
-/// Whether two export targets are the same file: compared after lexical normalisation
-/// (`a/./b` = `a/b`) and, when the parent directory exists, after resolving it (so
-/// `out/x.vti` and `./out/../out/x.vti` or a symlinked directory collide too).
-fn same_path(a: &Path, b: &Path) -> bool {
-    fn norm(p: &Path) -> PathBuf {
-        let lexical: PathBuf = p
-            .components()
-            .filter(|c| !matches!(c, std::path::Component::CurDir))
-            .collect();
-        let parent = lexical.parent().filter(|d| !d.as_os_str().is_empty());
-        let dir = parent
-            .map(Path::to_path_buf)
-            .unwrap_or_else(|| PathBuf::from("."));
-        match (std::fs::canonicalize(&dir), lexical.file_name()) {
-            (Ok(d), Some(name)) => d.join(name),
-            _ => lexical,
-        }
-    }
-    norm(a) == norm(b)
 }
 
 fn list_or_none(names: &[&str]) -> String {
@@ -1239,6 +1351,20 @@ pub fn execute(
             e.exporter
                 .write(artifact, &e.path, &prov, &e.options)
                 .map_err(|m| {
+                    if crate::fsutil::interrupted() {
+                        // A writer stopped by Ctrl-C (its temporary file removed): one line,
+                        // like an interrupted step.
+                        let mut pe = PipelineError::run(
+                            &doc.file,
+                            None,
+                            format!(
+                                "interrupted while writing {} (nothing written there)",
+                                e.path.display()
+                            ),
+                        );
+                        pe.class = crate::pipeline::ErrorClass::Interrupted;
+                        return pe;
+                    }
                     PipelineError::run(&doc.file, Some(e.loc), format!("export failed: {m}"))
                 })?;
             observer.exported(&e.path);

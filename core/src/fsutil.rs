@@ -87,6 +87,121 @@ pub fn clean_stale_temps(dir: &Path) -> usize {
     removed
 }
 
+/// Set by the interrupt handler (`pipe run`'s Ctrl-C) so that long writes stop: streaming
+/// exporters poll [`interrupted`] between blocks and fail, which removes their temporary
+/// file. Stages see the interrupt through their reporter; this flag is for writers, which
+/// have no reporter.
+static INTERRUPTED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Asks running writes to stop (see [`interrupted`]).
+pub fn request_interrupt() {
+    INTERRUPTED.store(true, std::sync::atomic::Ordering::SeqCst);
+}
+
+/// Whether an interrupt was requested ([`request_interrupt`]).
+pub fn interrupted() -> bool {
+    INTERRUPTED.load(std::sync::atomic::Ordering::SeqCst)
+}
+
+/// The message of a write stopped by an interrupt; the engine reports such a failure as an
+/// interruption (exit 130), not as a failed export.
+pub const INTERRUPTED_MESSAGE: &str = "interrupted";
+
+/// `Err(INTERRUPTED_MESSAGE)` once an interrupt was requested: for writers' loops.
+pub fn check_interrupt() -> Result<(), String> {
+    if interrupted() {
+        Err(INTERRUPTED_MESSAGE.into())
+    } else {
+        Ok(())
+    }
+}
+
+/// Temporary files and directories being written by this process right now.
+static LIVE: std::sync::Mutex<Vec<PathBuf>> = std::sync::Mutex::new(Vec::new());
+
+/// Registers a temporary path as being written (removed by [`remove_live_temps`] when the
+/// process is made to exit), until [`temp_done`].
+pub fn temp_started(p: &Path) {
+    LIVE.lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .push(p.to_path_buf());
+}
+
+/// The temporary path is renamed or removed: no longer ours to clean up.
+pub fn temp_done(p: &Path) {
+    LIVE.lock()
+        .unwrap_or_else(|e| e.into_inner())
+        .retain(|x| x != p);
+}
+
+/// Removes every temporary file and directory this process is writing: called by an
+/// interrupt handler just before it exits (a second Ctrl-C), so that no `.grainpipe-tmp`
+/// is left behind. Returns how many were removed.
+pub fn remove_live_temps() -> usize {
+    let live = std::mem::take(&mut *LIVE.lock().unwrap_or_else(|e| e.into_inner()));
+    live.iter()
+        .filter(|p| {
+            if p.is_dir() {
+                std::fs::remove_dir_all(p).is_ok()
+            } else {
+                std::fs::remove_file(p).is_ok()
+            }
+        })
+        .count()
+}
+
+/// Removes the temporary files and directories that killed writers of `target` left beside
+/// it (`.<name>.<pid>.<nanos>.grainpipe-tmp` whose writer is gone), whatever their age: run
+/// by every export of `target` before it writes, so a killed export's leftovers (a 1.5 GB
+/// STL, a directory of slices) go with the next run of that export. Returns how many were
+/// removed.
+pub fn clean_stale_temps_of(target: &Path) -> usize {
+    let Some(name) = target.file_name().map(|n| n.to_string_lossy().into_owned()) else {
+        return 0;
+    };
+    let dir = target
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let prefix = format!(".{name}.");
+    let mut removed = 0;
+    for e in entries.flatten() {
+        let entry = e.file_name().to_string_lossy().into_owned();
+        let Some(rest) = entry
+            .strip_prefix(&prefix)
+            .and_then(|r| r.strip_suffix(TEMP_SUFFIX))
+        else {
+            continue;
+        };
+        // `<pid>.<nanos>`: exactly this target's temporaries, not those of `name.x`.
+        let mut parts = rest.split('.');
+        let ours = matches!(
+            (parts.next(), parts.next(), parts.next()),
+            (Some(a), Some(b), None) if a.parse::<u32>().is_ok() && b.parse::<u128>().is_ok()
+        );
+        if !ours {
+            continue;
+        }
+        let Ok(meta) = std::fs::symlink_metadata(e.path()) else {
+            continue;
+        };
+        let modified = meta.modified().unwrap_or(std::time::SystemTime::UNIX_EPOCH);
+        if writer_may_be_alive(&entry, modified) {
+            continue;
+        }
+        let gone = if meta.is_dir() {
+            std::fs::remove_dir_all(e.path())
+        } else {
+            std::fs::remove_file(e.path())
+        };
+        removed += usize::from(gone.is_ok());
+    }
+    removed
+}
+
 /// Runs `write` on a temporary path, then renames it to `path`. On error the temporary file
 /// is removed and `path` is left untouched, so a crash never leaves a half-written file that
 /// looks valid. The temporary file is flushed to disk before the rename (a power loss after
@@ -113,7 +228,20 @@ pub fn atomic_write<E: std::fmt::Display>(
         }
         clean_stale_temps(dir);
     }
+    clean_stale_temps_of(path);
     let tmp = temp_path_for(path);
+    temp_started(&tmp);
+    let result = write_and_rename(path, &tmp, write);
+    temp_done(&tmp);
+    result
+}
+
+fn write_and_rename<E: std::fmt::Display>(
+    path: &Path,
+    tmp: &Path,
+    write: impl FnOnce(&Path) -> Result<(), E>,
+) -> Result<(), String> {
+    let tmp = tmp.to_path_buf();
     let synced = |tmp: &Path| -> Result<(), String> {
         std::fs::File::open(tmp)
             .and_then(|f| f.sync_all())

@@ -1,7 +1,7 @@
 //! The registry of stages and exporters. Each plugin crate fills it in its
 //! `register(&mut Registry)`; the core knows no plugin by name.
 
-use crate::model::{Artifact, ArtifactKind, Provenance};
+use crate::model::{Artifact, ArtifactKind, ArtifactMeta, Provenance};
 use crate::params::RUST_TYPE_WORDS;
 use crate::stage::{Stage, Typed, TypedStage};
 pub use crate::suggest::closest;
@@ -23,6 +23,49 @@ pub struct ExportOption {
 /// or else the declared default.
 pub type ExportOptions = serde_json::Map<String, serde_json::Value>;
 
+/// One file or directory an export writes: the target itself, or a file written beside it
+/// (the `.raw` of a `.mhd`, a `.csv.json` sidecar), or a directory replaced as a whole (the
+/// slices of a TIFF directory stack). The engine compares these, normalised, across every
+/// export of a pipeline at preflight, so two exports never write the same file.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WrittenPath {
+    pub path: std::path::PathBuf,
+    /// A directory the export replaces as a whole: no other export may write into it.
+    pub directory: bool,
+}
+
+impl WrittenPath {
+    pub fn file(path: impl Into<std::path::PathBuf>) -> Self {
+        WrittenPath {
+            path: path.into(),
+            directory: false,
+        }
+    }
+    pub fn directory(path: impl Into<std::path::PathBuf>) -> Self {
+        WrittenPath {
+            path: path.into(),
+            directory: true,
+        }
+    }
+}
+
+/// Peak memory of an exporter that builds its whole file in memory before writing it: about
+/// twice the artifact's size (the encoded copy and the compressed/encoded text), from what
+/// preflight announced. Voxel artifacts count 1 byte per voxel for images and 8 per value
+/// for fields; other kinds 256 bytes per item.
+pub fn in_memory_export_bytes(meta: &ArtifactMeta) -> u64 {
+    let per_item: u64 = match meta.kind {
+        ArtifactKind::PhaseImage => 2,
+        ArtifactKind::Field => 16,
+        _ => 512,
+    };
+    let items = match &meta.grid {
+        Some(g) => g.checked_voxel_count().map_or(u64::MAX, |n| n as u64),
+        None => meta.count_estimate,
+    };
+    items.saturating_mul(per_item)
+}
+
 /// Writes artifacts of some kinds to one file format.
 pub trait Exporter: Send + Sync {
     /// Format name as written in YAML `format:` (e.g. `vti`, `vtkhdf`, `h5`, `nc`, `csv`).
@@ -40,23 +83,17 @@ pub trait Exporter: Send + Sync {
     fn check_options(&self, _options: &ExportOptions) -> Result<(), (String, String)> {
         Ok(())
     }
-    /// Every file an export to `path` writes: `path` itself and any companion file (the
-    /// heavy-data `.h5` beside an `.xdmf`). Two exports whose files overlap are refused at
-    /// planning, as two exports to one path are.
-    fn written_paths(&self, path: &Path) -> Vec<std::path::PathBuf> {
-        vec![path.to_path_buf()]
-    }
     /// Checks an export against what preflight knows of the artifact (its announced
     /// [`ArtifactMeta`]: kind, grid, phase table, counts) and returns the memory the write
     /// needs beyond the artifact itself [bytes], which the engine adds to the producing
     /// step's estimate. On error: the option (or `to` when no option is at fault) and why.
-    /// By default nothing is checked and no memory is needed.
+    /// By default nothing is checked and the memory is [`Exporter::memory_bytes`].
     fn preflight(
         &self,
-        _meta: &crate::model::ArtifactMeta,
-        _options: &ExportOptions,
+        meta: &crate::model::ArtifactMeta,
+        options: &ExportOptions,
     ) -> Result<u64, (String, String)> {
-        Ok(0)
+        Ok(self.memory_bytes(meta, options))
     }
     /// Writes atomically: a crash never leaves a partial file at `path`. `options` holds
     /// every declared option, the export's value or else the default (the engine fills it;
@@ -68,6 +105,19 @@ pub trait Exporter: Send + Sync {
         provenance: &Provenance,
         options: &ExportOptions,
     ) -> Result<(), String>;
+    /// Every file and directory an export to `path` with `options` writes, the target
+    /// included (by default: the target alone). Formats that write beside the target (a
+    /// `.raw` next to a `.mhd`, a `.csv.json` sidecar, a directory of slices) list those too,
+    /// so that preflight can refuse two exports writing one file.
+    fn written_paths(&self, path: &Path, _options: &ExportOptions) -> Vec<WrittenPath> {
+        vec![WrittenPath::file(path)]
+    }
+    /// Peak memory [bytes] of writing an artifact that preflight announced as `meta`, beyond
+    /// the artifact itself; part of the pipeline's memory estimate. By default the size of a
+    /// file built in memory ([`in_memory_export_bytes`]); formats that stream say less.
+    fn memory_bytes(&self, meta: &ArtifactMeta, _options: &ExportOptions) -> u64 {
+        in_memory_export_bytes(meta)
+    }
     /// Every declared option at its default: what an export without `with:` gets.
     fn default_options(&self) -> ExportOptions {
         self.options()

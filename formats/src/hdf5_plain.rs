@@ -517,11 +517,24 @@ fn read_from(g: &Group) -> H5Result<Artifact> {
     })
 }
 
+/// Reads a whole dataset as `T` after checking the size it declares against the memory
+/// available: an HDF5 file of a few KB can declare a chunked dataset of terabytes.
+fn read_checked<T: hdf5_metno::H5Type>(ds: &hdf5_metno::Dataset) -> H5Result<Vec<T>> {
+    let bytes = ds
+        .shape()
+        .iter()
+        .try_fold(std::mem::size_of::<T>() as u64, |a, &d| {
+            a.checked_mul(d as u64)
+        });
+    crate::volume::check_declared(&format!("dataset `{}`", ds.name()), bytes).map_err(err)?;
+    ds.read_raw::<T>()
+}
+
 fn f64s(g: &Group, name: &str) -> H5Result<Vec<f64>> {
-    g.dataset(name)?.read_raw::<f64>()
+    read_checked::<f64>(&g.dataset(name)?)
 }
 fn i64s(g: &Group, name: &str) -> H5Result<Vec<i64>> {
-    g.dataset(name)?.read_raw::<i64>()
+    read_checked::<i64>(&g.dataset(name)?)
 }
 fn to_usize(v: &[i64], what: &str) -> H5Result<Vec<usize>> {
     v.iter()
@@ -700,6 +713,41 @@ pub fn read_hdf5_dataset(path: &Path, name: &str) -> Result<Volume, String> {
     volume_from(&f, name).map_err(at(path))
 }
 
+/// Feeds the values of a dataset to `scan` in slabs along its first axis (z, or y of a 2-D
+/// dataset) of about [`crate::import::SCAN_BLOCK_BYTES`], so checking the labels of a large
+/// dataset never holds it in memory.
+pub fn scan_hdf5_dataset(
+    path: &Path,
+    name: &str,
+    scan: &mut crate::volume::LabelScan,
+) -> Result<(), String> {
+    let f = open(path)?;
+    let r = (|| -> H5Result<()> {
+        let ds = f
+            .dataset(name)
+            .map_err(|e| err(format!("no dataset `{name}` ({e})")))?;
+        let shape = ds.shape();
+        dims_of(&shape)?;
+        let row: usize = shape[1..].iter().product::<usize>().max(1);
+        let step = (crate::import::SCAN_BLOCK_BYTES / 8 / row).max(1);
+        let mut a = 0;
+        while a < shape[0] {
+            let b = (a + step).min(shape[0]);
+            let block: Vec<f64> = match shape.len() {
+                2 => ds.read_slice::<f64, _, ndarray::IxDyn>((a..b, ..))?,
+                3 => ds.read_slice::<f64, _, ndarray::IxDyn>((a..b, .., ..))?,
+                _ => ds.read_slice::<f64, _, ndarray::IxDyn>((a..b, .., .., ..))?,
+            }
+            .into_raw_vec_and_offset()
+            .0;
+            scan.feed(block.into_iter());
+            a = b;
+        }
+        Ok(())
+    })();
+    r.map_err(at(path))
+}
+
 /// Shape ([nx, ny, nz], components) and element type of a dataset, without reading it.
 pub fn probe_hdf5_dataset(path: &Path, name: &str) -> Result<Probe, String> {
     let f = open(path)?;
@@ -741,15 +789,17 @@ fn volume_from(g: &Group, name: &str) -> H5Result<Volume> {
         .map_err(|e| err(format!("no dataset `{name}` ({e})")))?;
     let (dims, components) = dims_of(&ds.shape())?;
     let data = match ds.dtype()?.to_descriptor()? {
-        TypeDescriptor::Unsigned(IntSize::U1) => VolumeData::U8(ds.read_raw()?),
-        TypeDescriptor::Unsigned(IntSize::U2) => VolumeData::U16(ds.read_raw()?),
+        TypeDescriptor::Unsigned(IntSize::U1) => VolumeData::U8(read_checked(&ds)?),
+        TypeDescriptor::Unsigned(IntSize::U2) => VolumeData::U16(read_checked(&ds)?),
         TypeDescriptor::Integer(IntSize::U1 | IntSize::U2 | IntSize::U4) => {
-            VolumeData::I32(ds.read_raw()?)
+            VolumeData::I32(read_checked(&ds)?)
         }
-        TypeDescriptor::Boolean => VolumeData::U8(ds.read_raw()?),
-        TypeDescriptor::Unsigned(_) | TypeDescriptor::Integer(_) => VolumeData::F64(ds.read_raw()?),
-        TypeDescriptor::Float(FloatSize::U4) => VolumeData::F32(ds.read_raw()?),
-        TypeDescriptor::Float(_) => VolumeData::F64(ds.read_raw()?),
+        TypeDescriptor::Boolean => VolumeData::U8(read_checked(&ds)?),
+        TypeDescriptor::Unsigned(_) | TypeDescriptor::Integer(_) => {
+            VolumeData::F64(read_checked(&ds)?)
+        }
+        TypeDescriptor::Float(FloatSize::U4) => VolumeData::F32(read_checked(&ds)?),
+        TypeDescriptor::Float(_) => VolumeData::F64(read_checked(&ds)?),
         t => return Err(err(format!("dataset `{name}` holds {t:?}, not numbers"))),
     };
     let (spacing, origin, periodic) = dataset_grid(&ds);

@@ -10,7 +10,7 @@
 
 use crate::headers::{hdf5_header, netcdf_header, volume_geometry, vti_header, Header};
 use crate::raw::{probe_raw, read_raw, Endian, RawDtype, RawLayout};
-use crate::volume::Volume;
+use crate::volume::{LabelScan, Volume};
 use crate::{netcdf_io, vtk_xml};
 use grainpipe_core::params::{choice_schema, choice_type_name, serde_word};
 use grainpipe_core::units::{Length, Q};
@@ -195,15 +195,33 @@ fn check_lengths(key: &str, v: Option<Lengths3>, positive: bool) -> Result<(), S
 /// Common preflight: checks the header against `as`, works out the output grid (the file's
 /// geometry, overridden by `spacing`/`origin`), estimates memory (the array as stored plus
 /// the output) and announces the selected output on that grid.
+///
+/// The estimate is what the readers hold at their peak: the array as stored, the values as
+/// read (widened to the reader's type), the output, and `file_bytes` for readers that hold
+/// the file itself (a `.vti` is parsed in memory). It is checked against the memory available
+/// before anything runs, so a small file declaring a huge (or hugely compressed) array is
+/// refused with exit 2 instead of aborting on allocation.
 fn preflight_common(
     info: &StageInfo,
     header: Header,
     spacing: Option<Lengths3>,
     o: &ImportOptions,
+    file_bytes: u64,
 ) -> Result<Preflight<ImportPlan>, StageError> {
     let h = &header.probe;
     check_lengths("spacing", spacing, true)?;
     check_lengths("origin", o.origin, false)?;
+    if o.origin.is_none() {
+        if let Some(origin) = h.origin.filter(|x| x.iter().any(|v| !v.is_finite())) {
+            return Err(StageError::param(
+                "origin",
+                format!(
+                    "the file's origin {origin:?} m is not three finite lengths; set `origin` \
+                     explicitly, e.g. `origin: [0, 0, 0]`"
+                ),
+            ));
+        }
+    }
     if o.as_ == ImportAs::PhaseImage && h.components != 1 {
         return Err(StageError::param(
             "as",
@@ -255,7 +273,12 @@ fn preflight_common(
         ImportAs::Field => 8,
     };
     let (name, kind) = port(o.as_);
-    let mut pf = Preflight::from_info(info, (n * (h.elem_bytes + out_bytes)) as u64);
+    let per_value =
+        h.elem_bytes + crate::volume::volume_value_bytes(&h.dtype, h.elem_bytes) + out_bytes;
+    let bytes = (n as u64)
+        .saturating_mul(per_value as u64)
+        .saturating_add(file_bytes);
+    let mut pf = Preflight::from_info(info, bytes);
     pf.outputs.retain(|k, _| k == name);
     Ok(pf
         .announce(name, ArtifactMeta::on_grid(kind, grid.clone()))
@@ -275,7 +298,7 @@ fn finish(
     let h = &plan.header;
     let read = volume_geometry(&v);
     let agrees = if geometry {
-        read == h.geometry()
+        same_geometry(&read, &h.geometry())
     } else {
         (read.0, read.1) == (h.probe.dims, h.probe.components)
     };
@@ -305,9 +328,21 @@ fn finish(
     Ok(out)
 }
 
-/// Files up to this size are read once at preflight to check that their values are labels,
-/// so a wrong `as:` fails before any stage runs; larger ones are checked at run time.
+/// Header and data agree, floats compared bit for bit (a NaN the file states is the same NaN
+/// when read again, not "changed since").
+fn same_geometry(a: &crate::headers::Geometry, b: &crate::headers::Geometry) -> bool {
+    let bits = |v: Option<[f64; 3]>| v.map(|a| a.map(f64::to_bits));
+    (a.0, a.1, bits(a.2), bits(a.3), a.4) == (b.0, b.1, bits(b.2), bits(b.3), b.4)
+}
+
+/// Arrays up to this size (as stored, declared by the header) are scanned at preflight to
+/// check that their values are labels, so a wrong `as:` fails before any stage runs; larger
+/// ones are checked at run time, after the memory check. The scan streams (blocks of
+/// [`SCAN_BLOCK_BYTES`]) where the format allows it.
 const PREFLIGHT_READ_BYTES: u64 = 256 << 20;
+
+/// Bytes of one block of a streamed label scan.
+pub(crate) const SCAN_BLOCK_BYTES: usize = 8 << 20;
 
 /// The first voxel whose value is not a phase label (an integer 0..=255), as (x, y, z) and
 /// the value, with what to do about it.
@@ -315,41 +350,38 @@ fn check_labels(v: &Volume) -> Result<(), String> {
     if matches!(v.data, crate::volume::VolumeData::U8(_)) || v.components != 1 {
         return Ok(());
     }
-    let [nx, ny, _] = v.dims;
-    let bad = (0..v.data.len()).find(|&i| {
-        let x = v.data.get(i);
-        !(0.0..=255.0).contains(&x) || x.fract() != 0.0
-    });
-    let Some(i) = bad else { return Ok(()) };
-    let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
-    let (lo, hi) = (0..v.data.len())
-        .map(|i| v.data.get(i))
-        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
-            (a.min(x), b.max(x))
-        });
-    Err(format!(
-        "voxel (x={x}, y={y}, z={z}) holds {}; phase labels are integers 0..=255 (values span \
-         {lo} .. {hi}): import it with `as: field`, or relabel/threshold it first",
-        v.data.get(i)
-    ))
+    let mut scan = LabelScan::default();
+    scan.feed((0..v.data.len()).map(|i| v.data.get(i)));
+    scan.result(v.dims)
 }
 
-/// Reads the volume at preflight when the file is small enough and checks its labels
-/// (`as: phase_image` only); the error goes to the `as` key.
+/// Scans the values at preflight when the array the header declares is small enough
+/// (`as: phase_image` only; 8-bit unsigned arrays hold labels whatever their values) and
+/// checks that they are labels; the error goes to the `as` key. `scan` feeds the values to
+/// the [`LabelScan`] block by block. Nothing is read for an array larger than
+/// [`PREFLIGHT_READ_BYTES`]: the sizes in a header are not trusted before the memory check.
 fn preflight_labels(
     path: &Path,
     o: &ImportOptions,
-    read: impl FnOnce() -> Result<Volume, String>,
+    h: &Header,
+    scan: impl FnOnce(&mut LabelScan) -> Result<(), String>,
 ) -> Result<(), StageError> {
-    if o.as_ != ImportAs::PhaseImage {
+    let p = &h.probe;
+    if o.as_ != ImportAs::PhaseImage
+        || p.components != 1
+        || crate::volume::volume_value_bytes(&p.dtype, p.elem_bytes) == 1
+    {
         return Ok(());
     }
-    let size = std::fs::metadata(path).map(|m| m.len()).unwrap_or(u64::MAX);
-    if size > PREFLIGHT_READ_BYTES {
+    let declared =
+        grainpipe_core::checked_product(&[p.dims[0], p.dims[1], p.dims[2], p.elem_bytes]);
+    if declared.is_none_or(|b| b as u64 > PREFLIGHT_READ_BYTES) {
         return Ok(());
     }
-    let v = read().map_err(|e| StageError::param("path", e))?;
-    check_labels(&v).map_err(|e| StageError::param("as", format!("{}: {e}", path.display())))
+    let mut s = LabelScan::default();
+    scan(&mut s).map_err(|e| StageError::param("path", e))?;
+    s.result(p.dims)
+        .map_err(|e| StageError::param("as", format!("{}: {e}", path.display())))
 }
 
 /// Every dataset path in an HDF5 file, for "no such dataset" messages.
@@ -465,10 +497,9 @@ impl TypedStage for ImportRaw {
         }
         let path = check_path(&p.path)?;
         let probe = probe_raw(path, &p.layout()).map_err(|e| StageError::param("dims", e))?;
-        let pf = preflight_common(&self.info(), probe.into(), p.spacing, &p.options)?;
-        let g = &pf.plan.grid;
-        preflight_labels(path, &p.options, || {
-            read_raw(path, &p.layout(), g.spacing, g.origin)
+        let pf = preflight_common(&self.info(), probe.into(), p.spacing, &p.options, 0)?;
+        preflight_labels(path, &p.options, &pf.plan.header, |s| {
+            crate::raw::scan_raw(path, &p.layout(), s)
         })?;
         Ok(pf)
     }
@@ -491,9 +522,11 @@ impl TypedStage for ImportRaw {
 
 /// An import of one named array of a self-describing file: `$key` names the array, `$header`
 /// reads the file's header, `$read` the array.
+/// `$scan` feeds the array's values to a [`LabelScan`] (streaming where the format allows),
+/// `$held` gives the bytes of the file the reader holds in memory besides the array.
 macro_rules! named_import {
     ($stage:ident, $params:ident, $id:expr, $key:ident, $key_doc:tt, $doc:expr,
-     $header:expr, $read:expr) => {
+     $header:expr, $read:expr, $scan:expr, $held:expr) => {
         #[params]
         pub struct $params {
             /// input file (relative to the working directory)
@@ -526,9 +559,13 @@ macro_rules! named_import {
                 #[allow(clippy::redundant_closure_call)]
                 let header = ($header)(path, p.$key.as_str())
                     .map_err(|e| StageError::param(stringify!($key), e))?;
-                let pf = preflight_common(&self.info(), header, p.spacing, &p.options)?;
                 #[allow(clippy::redundant_closure_call)]
-                preflight_labels(path, &p.options, || ($read)(path, p.$key.as_str()))?;
+                let held: u64 = ($held)(path);
+                let pf = preflight_common(&self.info(), header, p.spacing, &p.options, held)?;
+                #[allow(clippy::redundant_closure_call)]
+                preflight_labels(path, &p.options, &pf.plan.header, |s| {
+                    ($scan)(path, p.$key.as_str(), s)
+                })?;
                 Ok(pf)
             }
 
@@ -565,7 +602,9 @@ named_import!(ImportHdf5, Hdf5Params, "import.hdf5", dataset,
      element_size_um are taken from its attributes when present.",
     |p: &Path, k: &str| need("dataset", k)
         .and_then(|k| hdf5_header(p, k).map_err(|e| missing_dataset(p, k, e))),
-    |p: &Path, k: &str| need("dataset", k).and_then(|k| crate::hdf5_plain::read_hdf5_dataset(p, k)));
+    |p: &Path, k: &str| need("dataset", k).and_then(|k| crate::hdf5_plain::read_hdf5_dataset(p, k)),
+    |p: &Path, k: &str, s: &mut LabelScan| crate::hdf5_plain::scan_hdf5_dataset(p, k, s),
+    |_: &Path| 0);
 
 named_import!(
     ImportNetcdf,
@@ -576,7 +615,9 @@ named_import!(
     "Reads one NetCDF variable as a volume; the grid comes from global spacing/origin \
      attributes or from uniform CF coordinate variables (converted through their units).",
     |p: &Path, k: &str| need("variable", k).and_then(|k| netcdf_header(p, k)),
-    |p: &Path, k: &str| need("variable", k).and_then(|k| netcdf_io::read_netcdf_variable(p, k))
+    |p: &Path, k: &str| need("variable", k).and_then(|k| netcdf_io::read_netcdf_variable(p, k)),
+    |p: &Path, k: &str, s: &mut LabelScan| netcdf_io::scan_netcdf_variable(p, k, s),
+    |_: &Path| 0
 );
 
 named_import!(
@@ -588,7 +629,12 @@ named_import!(
     "Reads one array of a VTK XML ImageData file (ascii, binary, appended, zlib); point data \
      is taken as voxel centres. Phase tables written by grainpipe are kept.",
     |p: &Path, k: &str| vti_header(p, opt(k)),
-    |p: &Path, k: &str| vtk_xml::read_vti(p, opt(k))
+    |p: &Path, k: &str| vtk_xml::read_vti(p, opt(k)),
+    // The array declared is at most PREFLIGHT_READ_BYTES: read in full.
+    |p: &Path, k: &str, s: &mut LabelScan| vtk_xml::read_vti(p, opt(k))
+        .map(|v| { s.feed((0..v.data.len()).map(|i| v.data.get(i))) }),
+    // The file is read and parsed in memory: its bytes, the XML text and the appended block.
+    |p: &Path| std::fs::metadata(p).map_or(0, |m| m.len().saturating_mul(3))
 );
 
 // ---------------------------------------------------------------------------------------
@@ -617,7 +663,8 @@ impl TypedStage for ImportTiff {
             "import.tiff",
             "1.1.0",
             "Reads a TIFF stack as a volume: a multi-page TIFF (page k = slice z = k) or a \
-             directory of single-page TIFFs in file-name order, as CT software writes them. \
+             directory of single-page TIFFs in natural file-name order (s2 before s10), as CT \
+             software writes them. \
              Grayscale 8/16/32/64-bit pages; row r of a page is y = r. Preflight reads every \
              page header and checks that all pages share size and type. The voxel size, \
              origin and phase names written by the `tiff` exporter come back; so does an \
@@ -643,7 +690,7 @@ impl TypedStage for ImportTiff {
                  give it, e.g. `spacing: 4 um`",
             ));
         }
-        preflight_common(&self.info(), header, p.spacing, &p.options)
+        preflight_common(&self.info(), header, p.spacing, &p.options, 0)
     }
 
     fn run(

@@ -705,6 +705,19 @@ fn parse_atoms(
     if n == 0 {
         return Err(bad(format!("{file}:{hline}: frame {k} has no atoms")));
     }
+    // The count is the file's word: nothing is allocated for atoms the frame cannot list
+    // (a 300-byte dump may claim 10^12 atoms).
+    let lines_left = end.saturating_sub(i + 1);
+    if n > lines_left {
+        let listed = lines[i + 1..end]
+            .iter()
+            .take_while(|l| !l.trim().starts_with("ITEM:"))
+            .count();
+        return Err(bad(format!(
+            "{file}:{}: frame {k} announces {n} atoms but lists {listed}",
+            i + 1 + listed + 1
+        )));
+    }
     let mut rows = Vec::with_capacity(n);
     let mut ids = Vec::new();
     let mut types = Vec::new();

@@ -235,6 +235,10 @@ pub fn read_netcdf_variable(path: &Path, var: &str) -> Result<Volume, String> {
     let v = f.variable(var).ok_or_else(|| at(missing(&f, var)))?;
     let lens: Vec<usize> = v.dimensions().iter().map(|d| d.len()).collect();
     let (dims, components) = shape(&lens).map_err(at)?;
+    let bytes = lens
+        .iter()
+        .try_fold(v.vartype().size() as u64, |a, &d| a.checked_mul(d as u64));
+    crate::volume::check_declared(&format!("variable `{var}`"), bytes).map_err(at)?;
     let data = match v.vartype() {
         NcVariableType::Int(IntType::U8) => {
             VolumeData::U8(v.get_values(..).map_err(|e| at(nc(e)))?)
@@ -289,6 +293,52 @@ pub fn read_netcdf_variable(path: &Path, var: &str) -> Result<Volume, String> {
         data,
         phases,
     })
+}
+
+/// Feeds the values of variable `var` to `scan` in slabs along its first dimension of about
+/// [`crate::import::SCAN_BLOCK_BYTES`], read in the variable's own type, so checking the labels
+/// of a large variable never holds it in memory.
+pub fn scan_netcdf_variable(
+    path: &Path,
+    var: &str,
+    scan: &mut crate::volume::LabelScan,
+) -> Result<(), String> {
+    let at = |e: String| format!("{}: {e}", path.display());
+    quiet_hdf5();
+    let f = netcdf::open(path).map_err(|e| at(format!("cannot open as NetCDF: {e}")))?;
+    let v = f.variable(var).ok_or_else(|| at(missing(&f, var)))?;
+    let lens: Vec<usize> = v.dimensions().iter().map(|d| d.len()).collect();
+    shape(&lens).map_err(at)?;
+    let row: usize = lens[1..].iter().product::<usize>().max(1);
+    let step = (crate::import::SCAN_BLOCK_BYTES / 8 / row).max(1);
+    let mut a = 0;
+    while a < lens[0] {
+        let b = (a + step).min(lens[0]);
+        let ext: Vec<std::ops::Range<usize>> = std::iter::once(a..b)
+            .chain(lens[1..].iter().map(|&l| 0..l))
+            .collect();
+        macro_rules! feed {
+            ($t:ty) => {{
+                let block: Vec<$t> = v.get_values(ext).map_err(|e| at(nc(e)))?;
+                scan.feed(block.into_iter().map(|x| x as f64));
+            }};
+        }
+        match v.vartype() {
+            NcVariableType::Int(IntType::U8) => feed!(u8),
+            NcVariableType::Int(IntType::I8) => feed!(i8),
+            NcVariableType::Int(IntType::U16) => feed!(u16),
+            NcVariableType::Int(IntType::I16) => feed!(i16),
+            NcVariableType::Int(IntType::U32) => feed!(u32),
+            NcVariableType::Int(IntType::I32) => feed!(i32),
+            NcVariableType::Int(IntType::U64) => feed!(u64),
+            NcVariableType::Int(IntType::I64) => feed!(i64),
+            NcVariableType::Float(FloatType::F32) => feed!(f32),
+            NcVariableType::Float(FloatType::F64) => feed!(f64),
+            t => return Err(at(format!("variable `{var}` holds {t:?}, not numbers"))),
+        }
+        a = b;
+    }
+    Ok(())
 }
 
 /// Three numbers of global attribute `k`.

@@ -132,11 +132,47 @@ pub fn read_raw(
     })
 }
 
+/// Feeds the values of a raw volume to `scan` block by block (no copy of the volume).
+pub fn scan_raw(
+    path: &Path,
+    layout: &RawLayout,
+    scan: &mut crate::volume::LabelScan,
+) -> Result<(), String> {
+    use std::io::{Read, Seek, SeekFrom};
+    probe_raw(path, layout)?;
+    let at = |e: std::io::Error| format!("{}: {e}", path.display());
+    let mut f = std::fs::File::open(path).map_err(at)?;
+    f.seek(SeekFrom::Start(layout.header_bytes)).map_err(at)?;
+    let size = layout.dtype.size();
+    let little = layout.endian == Endian::Little;
+    let mut buf = vec![0u8; crate::import::SCAN_BLOCK_BYTES / size * size];
+    loop {
+        let mut filled = 0;
+        while filled < buf.len() {
+            match f.read(&mut buf[filled..]).map_err(at)? {
+                0 => break,
+                k => filled += k,
+            }
+        }
+        let b = &buf[..filled - filled % size];
+        match layout.dtype {
+            RawDtype::U8 => scan.feed(b.iter().map(|&x| x as f64)),
+            RawDtype::U16 => scan.feed(from_bytes::<u16>(b, little).into_iter().map(f64::from)),
+            RawDtype::I32 => scan.feed(from_bytes::<i32>(b, little).into_iter().map(f64::from)),
+            RawDtype::F32 => scan.feed(from_bytes::<f32>(b, little).into_iter().map(f64::from)),
+            RawDtype::F64 => scan.feed(from_bytes::<f64>(b, little).into_iter()),
+        }
+        if filled < buf.len() {
+            return Ok(());
+        }
+    }
+}
+
 // ---------------------------------------------------------------------------------------
 // Writer: raw data plus a MetaImage header
 
 use crate::volume::{to_le_bytes, VolumeRef};
-use grainpipe_core::fsutil::atomic_write_bytes;
+use grainpipe_core::fsutil::{atomic_write, atomic_write_bytes};
 use grainpipe_core::FieldData;
 
 /// The `.raw` and `.mhd` paths of an export to `path` (either extension names the pair).
@@ -158,8 +194,19 @@ fn length_unit(v: &serde_json::Value) -> Result<f64, String> {
 }
 
 /// Writes the voxels headerless (x fastest, little-endian; components interleaved) and a
-/// MetaImage header beside them. The header is written last, so a header never names a
-/// partial data file. `unit`: metres per header length unit.
+/// MetaImage header beside them. `unit`: metres per header length unit.
+///
+/// The pair is replaced so that a reader never finds a header beside a payload of another
+/// write, whenever the process is killed (a header names its payload file, so the order is):
+/// 1. the voxels go to a fresh file `<stem>.grainpipe-<tag>.raw` (atomically);
+/// 2. the `.mhd` is replaced by a header naming that fresh file;
+/// 3. `<stem>.raw` is replaced by a hard link to the fresh file (a copy where the file
+///    system has no hard links);
+/// 4. the `.mhd` is replaced by the final header naming `<stem>.raw`;
+/// 5. the fresh name, and fresh names a killed export left, are removed.
+///
+/// Killed before 2, the old pair is intact (the fresh file goes with the next export); after
+/// 2, the header names the new payload, under one name or the other.
 pub fn write_raw_mhd(
     artifact: &grainpipe_core::Artifact,
     path: &Path,
@@ -169,11 +216,11 @@ pub fn write_raw_mhd(
     let v = VolumeRef::from_artifact(artifact, "raw")?;
     v.validate()?;
     let (raw, mhd) = mhd_pair(path);
-    let (bytes, met) = match v {
-        VolumeRef::Phase(p) => (p.labels.clone(), "MET_UCHAR"),
+    let met = match v {
+        VolumeRef::Phase(_) => "MET_UCHAR",
         VolumeRef::Field(f) => match &f.data {
-            FieldData::F32(d) => (to_le_bytes(d), "MET_FLOAT"),
-            FieldData::F64(d) => (to_le_bytes(d), "MET_DOUBLE"),
+            FieldData::F32(_) => "MET_FLOAT",
+            FieldData::F64(_) => "MET_DOUBLE",
         },
     };
     let g = v.grid();
@@ -207,13 +254,124 @@ pub fn write_raw_mhd(
         head.push_str(&format!("ElementNumberOfChannels = {}\n", v.components()));
     }
     head.push_str(&h);
-    let name = raw
-        .file_name()
+    let header_naming = |data: &Path| {
+        let name = data
+            .file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        format!("{head}ElementType = {met}\nElementDataFile = {name}\n")
+    };
+    let fresh = fresh_payload(&raw);
+    // 1. the voxels, streamed in blocks (no copy of the volume in memory)
+    atomic_write(&fresh, |tmp| write_voxels(tmp, v))?;
+    let result = (|| {
+        // 2. a header naming the fresh payload
+        atomic_write_bytes(&mhd, header_naming(&fresh).as_bytes())?;
+        // 3. the payload under its final name
+        atomic_write(&raw, |tmp| {
+            std::fs::hard_link(&fresh, tmp)
+                .or_else(|_| std::fs::copy(&fresh, tmp).map(|_| ()))
+                .map_err(|e| format!("{}: {e}", fresh.display()))
+        })?;
+        // 4. the final header
+        atomic_write_bytes(&mhd, header_naming(&raw).as_bytes())
+    })();
+    if result.is_ok() {
+        // 5. no header names the fresh file any more
+        let _ = std::fs::remove_file(&fresh);
+        remove_stale_payloads(&raw);
+    }
+    result
+}
+
+/// `<stem>.grainpipe-<tag>.raw` beside `raw`: a name no earlier write used.
+fn fresh_payload(raw: &Path) -> std::path::PathBuf {
+    let stem = raw
+        .file_stem()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_default();
-    head.push_str(&format!("ElementType = {met}\nElementDataFile = {name}\n"));
-    atomic_write_bytes(&raw, &bytes)?;
-    atomic_write_bytes(&mhd, head.as_bytes())
+    let tag = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_nanos())
+        .unwrap_or(0);
+    raw.with_file_name(format!(
+        "{stem}{FRESH_MARK}{tag:x}{:x}.raw",
+        std::process::id()
+    ))
+}
+
+const FRESH_MARK: &str = ".grainpipe-";
+
+/// Removes the fresh payloads (`<stem>.grainpipe-<hex>.raw`) of earlier writes of `raw`
+/// that were killed: once the final header names `<stem>.raw`, none of them is named.
+fn remove_stale_payloads(raw: &Path) {
+    let stem = raw
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let prefix = format!("{stem}{FRESH_MARK}");
+    let dir = raw
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let ours = name
+            .strip_prefix(&prefix)
+            .and_then(|r| r.strip_suffix(".raw"))
+            .is_some_and(|t| !t.is_empty() && t.bytes().all(|b| b.is_ascii_hexdigit()));
+        if ours && e.path().is_file() {
+            let _ = std::fs::remove_file(e.path());
+        }
+    }
+}
+
+/// The voxels of `v`, little-endian, written in blocks (polling the interrupt flag).
+fn write_voxels(path: &Path, v: VolumeRef) -> Result<(), String> {
+    use std::io::Write;
+    const BLOCK: usize = 1 << 20;
+    let at = |e: std::io::Error| format!("{}: {e}", path.display());
+    let mut f = std::io::BufWriter::new(std::fs::File::create(path).map_err(at)?);
+    match v {
+        VolumeRef::Phase(p) => {
+            for c in p.labels.chunks(BLOCK) {
+                grainpipe_core::fsutil::check_interrupt()?;
+                f.write_all(c).map_err(at)?;
+            }
+        }
+        VolumeRef::Field(fl) => {
+            macro_rules! values {
+                ($d:expr) => {
+                    for c in $d.chunks(BLOCK) {
+                        grainpipe_core::fsutil::check_interrupt()?;
+                        f.write_all(&to_le_bytes(c)).map_err(at)?;
+                    }
+                };
+            }
+            match &fl.data {
+                FieldData::F32(d) => values!(d),
+                FieldData::F64(d) => values!(d),
+            }
+        }
+    }
+    f.flush().map_err(at)
+}
+
+/// The `.mhd` and the `.raw` of an export (the target first).
+fn raw_written_paths(
+    path: &Path,
+    _: &grainpipe_core::registry::ExportOptions,
+) -> Vec<grainpipe_core::registry::WrittenPath> {
+    use grainpipe_core::registry::WrittenPath;
+    let (raw, mhd) = mhd_pair(path);
+    if path == raw {
+        vec![WrittenPath::file(raw), WrittenPath::file(mhd)]
+    } else {
+        vec![WrittenPath::file(mhd), WrittenPath::file(raw)]
+    }
 }
 
 crate::vtk_xml::exporter!(
@@ -233,7 +391,8 @@ crate::vtk_xml::exporter!(
         default: serde_json::json!("mm"),
     }],
     check: check_raw_options,
-    write: write_raw_options
+    write: write_raw_options,
+    paths: raw_written_paths
 );
 
 /// Metres per `length_unit` (millimetres when the option is absent).

@@ -8,7 +8,7 @@
 //! of a tetrahedron edge.
 
 use crate::volume::VolumeRef;
-use grainpipe_core::fsutil::atomic_write_bytes;
+use grainpipe_core::fsutil::{atomic_write, check_interrupt};
 use grainpipe_core::registry::{ExportOption, ExportOptions};
 use grainpipe_core::{Artifact, ArtifactKind, Exporter, PhaseImage, Provenance};
 use std::path::Path;
@@ -132,6 +132,16 @@ const TETS: [[usize; 4]; 6] = [
 /// padded by one layer outside the phase so the surface closes at the image faces. Vertices
 /// are midpoints between voxel centres; coordinates in metres.
 pub fn phase_surface(img: &PhaseImage, phase: u8) -> Vec<Triangle> {
+    let mut out = Vec::new();
+    for z in -1..img.grid.dims[2] as i64 {
+        phase_surface_slab(img, phase, z, &mut out);
+    }
+    out
+}
+
+/// The triangles of [`phase_surface`] in the layer of cubes between voxel centres `z` and
+/// `z + 1` (`z` from -1 to nz - 1), appended to `out`: what a streaming export holds at a time.
+pub fn phase_surface_slab(img: &PhaseImage, phase: u8, z: i64, out: &mut Vec<Triangle>) {
     let g = &img.grid;
     let [nx, ny, nz] = g.dims.map(|d| d as i64);
     let inside = |x: i64, y: i64, z: i64| {
@@ -146,62 +156,58 @@ pub fn phase_surface(img: &PhaseImage, phase: u8) -> Vec<Triangle> {
     // Positions in half-voxel units from the lower grid corner: voxel centre (x) is 2x + 1,
     // so every midpoint is an integer point and shared vertices are bit-identical.
     let world = |p: [i64; 3]| [0, 1, 2].map(|k| g.origin[k] + 0.5 * p[k] as f64 * g.spacing[k]);
-    let mut out = Vec::new();
-    for z in -1..nz {
-        for y in -1..ny {
-            for x in -1..nx {
-                let corner = |b: usize| {
-                    [
-                        x + (b & 1) as i64,
-                        y + ((b >> 1) & 1) as i64,
-                        z + ((b >> 2) & 1) as i64,
-                    ]
-                };
-                let ins: [bool; 8] = std::array::from_fn(|b| {
-                    let c = corner(b);
-                    inside(c[0], c[1], c[2])
-                });
-                if ins.iter().all(|&i| i) || ins.iter().all(|&i| !i) {
+    for y in -1..ny {
+        for x in -1..nx {
+            let corner = |b: usize| {
+                [
+                    x + (b & 1) as i64,
+                    y + ((b >> 1) & 1) as i64,
+                    z + ((b >> 2) & 1) as i64,
+                ]
+            };
+            let ins: [bool; 8] = std::array::from_fn(|b| {
+                let c = corner(b);
+                inside(c[0], c[1], c[2])
+            });
+            if ins.iter().all(|&i| i) || ins.iter().all(|&i| !i) {
+                continue;
+            }
+            let pos = |b: usize| corner(b).map(|c| 2 * c + 1);
+            for tet in TETS {
+                let (inn, outs): (Vec<usize>, Vec<usize>) = tet.iter().partition(|&&b| ins[b]);
+                if inn.is_empty() || outs.is_empty() {
                     continue;
                 }
-                let pos = |b: usize| corner(b).map(|c| 2 * c + 1);
-                for tet in TETS {
-                    let (inn, outs): (Vec<usize>, Vec<usize>) = tet.iter().partition(|&&b| ins[b]);
-                    if inn.is_empty() || outs.is_empty() {
-                        continue;
+                let m = |a: usize, b: usize| {
+                    let (p, q) = (pos(a), pos(b));
+                    [0, 1, 2].map(|k| (p[k] + q[k]) / 2)
+                };
+                let polys: Vec<[[i64; 3]; 3]> = match (inn.len(), outs.len()) {
+                    (1, 3) => {
+                        vec![[m(inn[0], outs[0]), m(inn[0], outs[1]), m(inn[0], outs[2])]]
                     }
-                    let m = |a: usize, b: usize| {
-                        let (p, q) = (pos(a), pos(b));
-                        [0, 1, 2].map(|k| (p[k] + q[k]) / 2)
-                    };
-                    let polys: Vec<[[i64; 3]; 3]> = match (inn.len(), outs.len()) {
-                        (1, 3) => {
-                            vec![[m(inn[0], outs[0]), m(inn[0], outs[1]), m(inn[0], outs[2])]]
-                        }
-                        (3, 1) => {
-                            vec![[m(outs[0], inn[0]), m(outs[0], inn[1]), m(outs[0], inn[2])]]
-                        }
-                        _ => {
-                            // Quad a-b-c-d around the tetrahedron, split along a-c.
-                            let (i0, i1, o0, o1) = (inn[0], inn[1], outs[0], outs[1]);
-                            let (a, b, c, d) = (m(i0, o0), m(i0, o1), m(i1, o1), m(i1, o0));
-                            vec![[a, b, c], [a, c, d]]
-                        }
-                    };
-                    let ci = centroid(inn.iter().map(|&b| pos(b)));
-                    let co = centroid(outs.iter().map(|&b| pos(b)));
-                    for p in polys {
-                        let t = p.map(world);
-                        let n = cross(sub(t[1], t[0]), sub(t[2], t[0]));
-                        // Normals point from the phase outwards.
-                        let outward = dot(n, sub(world_f(g, co), world_f(g, ci))) >= 0.0;
-                        out.push(if outward { t } else { [t[0], t[2], t[1]] });
+                    (3, 1) => {
+                        vec![[m(outs[0], inn[0]), m(outs[0], inn[1]), m(outs[0], inn[2])]]
                     }
+                    _ => {
+                        // Quad a-b-c-d around the tetrahedron, split along a-c.
+                        let (i0, i1, o0, o1) = (inn[0], inn[1], outs[0], outs[1]);
+                        let (a, b, c, d) = (m(i0, o0), m(i0, o1), m(i1, o1), m(i1, o0));
+                        vec![[a, b, c], [a, c, d]]
+                    }
+                };
+                let ci = centroid(inn.iter().map(|&b| pos(b)));
+                let co = centroid(outs.iter().map(|&b| pos(b)));
+                for p in polys {
+                    let t = p.map(world);
+                    let n = cross(sub(t[1], t[0]), sub(t[2], t[0]));
+                    // Normals point from the phase outwards.
+                    let outward = dot(n, sub(world_f(g, co), world_f(g, ci))) >= 0.0;
+                    out.push(if outward { t } else { [t[0], t[2], t[1]] });
                 }
             }
         }
     }
-    out
 }
 
 fn centroid(ps: impl Iterator<Item = [i64; 3]>) -> [f64; 3] {
@@ -220,37 +226,110 @@ fn world_f(g: &grainpipe_core::Grid, p: [f64; 3]) -> [f64; 3] {
     [0, 1, 2].map(|k| g.origin[k] + 0.5 * p[k] * g.spacing[k])
 }
 
+/// The 80-byte header of a binary STL (never starting with "solid", which makes some readers
+/// take the file for ASCII STL).
+fn stl_header(header: &str) -> Vec<u8> {
+    let mut h = header.as_bytes().to_vec();
+    if h.starts_with(b"solid") {
+        h.insert(0, b' ');
+    }
+    h.resize(80, b' ');
+    h
+}
+
+/// One triangle as its 50 bytes of binary STL (normal, three vertices, attribute 0).
+fn put_triangle(b: &mut Vec<u8>, t: &Triangle, scale: f64) {
+    let nrm = unit(cross(sub(t[1], t[0]), sub(t[2], t[0])));
+    let nrm = if nrm.iter().all(|x| x.is_finite()) {
+        nrm
+    } else {
+        [0.0; 3]
+    };
+    for x in nrm {
+        b.extend_from_slice(&(x as f32).to_le_bytes());
+    }
+    for p in t {
+        for x in p {
+            b.extend_from_slice(&((x * scale) as f32).to_le_bytes());
+        }
+    }
+    b.extend_from_slice(&0u16.to_le_bytes());
+}
+
 /// Binary STL bytes; `scale` converts metres to the file's length unit.
 pub fn stl_bytes(tris: &[Triangle], scale: f64, header: &str) -> Result<Vec<u8>, String> {
     let n = u32::try_from(tris.len())
         .map_err(|_| format!("{} triangles exceed what binary STL counts", tris.len()))?;
     let mut b = Vec::with_capacity(84 + 50 * tris.len());
-    let mut h = header.as_bytes().to_vec();
-    // A header starting with "solid" makes some readers take the file for ASCII STL.
-    if h.starts_with(b"solid") {
-        h.insert(0, b' ');
-    }
-    h.resize(80, b' ');
-    b.extend_from_slice(&h);
+    b.extend_from_slice(&stl_header(header));
     b.extend_from_slice(&n.to_le_bytes());
     for t in tris {
-        let nrm = unit(cross(sub(t[1], t[0]), sub(t[2], t[0])));
-        let nrm = if nrm.iter().all(|x| x.is_finite()) {
-            nrm
-        } else {
-            [0.0; 3]
-        };
-        for x in nrm {
-            b.extend_from_slice(&(x as f32).to_le_bytes());
-        }
-        for p in t {
-            for x in p {
-                b.extend_from_slice(&((x * scale) as f32).to_le_bytes());
-            }
-        }
-        b.extend_from_slice(&0u16.to_le_bytes());
+        put_triangle(&mut b, t, scale);
     }
     Ok(b)
+}
+
+/// A binary STL written as its triangles come: the count is filled in at the end, so the
+/// surface is never held in memory (a 333^3 image's boundary is several GB of triangles).
+struct StlStream {
+    file: std::io::BufWriter<std::fs::File>,
+    path: std::path::PathBuf,
+    scale: f64,
+    count: u64,
+    buf: Vec<u8>,
+}
+
+impl StlStream {
+    fn create(path: &Path, header: &str, scale: f64) -> Result<Self, String> {
+        use std::io::Write;
+        let at = |e: std::io::Error| format!("{}: {e}", path.display());
+        let mut file =
+            std::io::BufWriter::with_capacity(1 << 20, std::fs::File::create(path).map_err(at)?);
+        file.write_all(&stl_header(header)).map_err(at)?;
+        file.write_all(&0u32.to_le_bytes()).map_err(at)?;
+        Ok(StlStream {
+            file,
+            path: path.to_path_buf(),
+            scale,
+            count: 0,
+            buf: Vec::with_capacity(50),
+        })
+    }
+
+    fn push(&mut self, t: &Triangle) -> Result<(), String> {
+        use std::io::Write;
+        self.buf.clear();
+        put_triangle(&mut self.buf, t, self.scale);
+        self.count += 1;
+        self.file
+            .write_all(&self.buf)
+            .map_err(|e| format!("{}: {e}", self.path.display()))
+    }
+
+    /// Writes the triangle count into the header; fails when binary STL cannot count them.
+    fn finish(self) -> Result<(), String> {
+        use std::io::{Seek, SeekFrom, Write};
+        let at = |e: std::io::Error| format!("{}: {e}", self.path.display());
+        let n = u32::try_from(self.count)
+            .map_err(|_| format!("{} triangles exceed what binary STL counts", self.count))?;
+        let mut f = self.file.into_inner().map_err(|e| at(e.into_error()))?;
+        f.seek(SeekFrom::Start(80)).map_err(at)?;
+        f.write_all(&n.to_le_bytes()).map_err(at)?;
+        f.flush().map_err(at)
+    }
+}
+
+/// Peak memory of an STL export [bytes]: the triangles of one layer of cubes of an image
+/// (at most 12 per cube), or one icosphere, plus the write buffer.
+fn stl_export_bytes(meta: &grainpipe_core::ArtifactMeta) -> u64 {
+    let layer = meta.grid.as_ref().map_or(0u64, |g| {
+        let per_cube = 12 * std::mem::size_of::<Triangle>() as u64;
+        (g.dims[0] as u64 + 1)
+            .saturating_mul(g.dims[1] as u64 + 1)
+            .saturating_mul(per_cube)
+    });
+    let sphere = 20 * 4u64.pow(6) * std::mem::size_of::<Triangle>() as u64;
+    layer.max(sphere).saturating_add(2 << 20)
 }
 
 /// Reads binary STL triangles back (coordinates in the file's unit).
@@ -354,15 +433,14 @@ impl Exporter for StlExporter {
         let get = |k: &str| o.get(k).cloned().unwrap_or(serde_json::Value::Null);
         let s = subdivisions(&get("subdivisions"))?;
         let scale = scale_of(&get("length_unit"))?;
-        let tris = match a {
+        // Spheres as (centre, radius); an image's surface is written layer by layer.
+        let spheres: Vec<([f64; 3], f64)> = match a {
             Artifact::Packing(p) => {
                 a.validate()?;
-                let spheres: Vec<_> = p
-                    .world_spheres()
+                p.world_spheres()
                     .iter()
                     .map(|w| (w.center, w.radius))
-                    .collect();
-                sphere_surfaces(&spheres, s)
+                    .collect()
             }
             Artifact::ClumpLibrary(l) => {
                 let pitch = 2.0
@@ -370,8 +448,7 @@ impl Exporter for StlExporter {
                         .iter()
                         .map(|c| c.bounding_radius)
                         .fold(0.0, f64::max);
-                let spheres: Vec<_> = l
-                    .clumps
+                l.clumps
                     .iter()
                     .enumerate()
                     .flat_map(|(k, c)| {
@@ -380,8 +457,7 @@ impl Exporter for StlExporter {
                             ([o[0] + k as f64 * pitch, o[1], o[2]], sp.radius)
                         })
                     })
-                    .collect();
-                sphere_surfaces(&spheres, s)
+                    .collect()
             }
             Artifact::PhaseImage(img) => {
                 VolumeRef::Phase(img).validate()?;
@@ -396,7 +472,7 @@ impl Exporter for StlExporter {
                             .join(", ")
                     ));
                 }
-                phase_surface(img, phase)
+                Vec::new()
             }
             other => return Err(format!("stl cannot hold a {}", other.kind())),
         };
@@ -407,6 +483,32 @@ impl Exporter for StlExporter {
                 .map(|s| s.as_str())
                 .unwrap_or("")
         );
-        atomic_write_bytes(path, &stl_bytes(&tris, scale, &header)?)
+        atomic_write(path, |tmp| -> Result<(), String> {
+            let mut out = StlStream::create(tmp, &header, scale)?;
+            if let Artifact::PhaseImage(img) = a {
+                let phase = phase_of(&get("phase"))?;
+                let mut layer = Vec::new();
+                for z in -1..img.grid.dims[2] as i64 {
+                    check_interrupt()?;
+                    layer.clear();
+                    phase_surface_slab(img, phase, z, &mut layer);
+                    layer.iter().try_for_each(|t| out.push(t))?;
+                }
+            } else {
+                let unit_sphere = icosphere(s);
+                for (k, (c, r)) in spheres.iter().enumerate() {
+                    if k % 4096 == 0 {
+                        check_interrupt()?;
+                    }
+                    for t in &unit_sphere {
+                        out.push(&t.map(|p| [0, 1, 2].map(|k| c[k] + r * p[k])))?;
+                    }
+                }
+            }
+            out.finish()
+        })
+    }
+    fn memory_bytes(&self, meta: &grainpipe_core::ArtifactMeta, _: &ExportOptions) -> u64 {
+        stl_export_bytes(meta)
     }
 }

@@ -534,8 +534,21 @@ crate::vtk_xml::exporter!(
      dimensionless) and the data rows; tables, tensors (matrix rows under `xx [Pa]` .. \
      labels), contact graphs (i, j, gap, bonded, bond attributes). Provenance, names, units, \
      tensor convention and shape go to the sidecar `<file>.csv.json`",
-    write_csv
+    write_csv,
+    paths: csv_written_paths
 );
+
+/// A CSV export writes the file and its sidecar.
+fn csv_written_paths(
+    path: &Path,
+    _: &grainpipe_core::registry::ExportOptions,
+) -> Vec<grainpipe_core::registry::WrittenPath> {
+    use grainpipe_core::registry::WrittenPath;
+    vec![
+        WrittenPath::file(path),
+        WrittenPath::file(csv_sidecar(path)),
+    ]
+}
 crate::vtk_xml::exporter!(
     JsonExporter,
     "json",

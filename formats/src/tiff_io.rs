@@ -19,8 +19,9 @@ use tiff::encoder::{Rational, TiffEncoder};
 use tiff::tags::ResolutionUnit;
 use tiff::ColorType;
 
-/// The files of a stack: the file itself, or the `.tif`/`.tiff` files of a directory sorted
-/// by name.
+/// The files of a stack: the file itself, or the `.tif`/`.tiff` files of a directory in
+/// natural name order (runs of digits compared as numbers: `s2` before `s10`, as CT software
+/// numbers slices without padding).
 pub fn stack_files(path: &Path) -> Result<Vec<PathBuf>, String> {
     if !path.is_dir() {
         return Ok(vec![path.to_path_buf()]);
@@ -34,7 +35,7 @@ pub fn stack_files(path: &Path) -> Result<Vec<PathBuf>, String> {
                 .is_some_and(|x| x.eq_ignore_ascii_case("tif") || x.eq_ignore_ascii_case("tiff"))
         })
         .collect();
-    files.sort();
+    files.sort_by(|a, b| natural_cmp(&a.to_string_lossy(), &b.to_string_lossy()));
     if files.is_empty() {
         return Err(format!(
             "{}: no .tif or .tiff files in this directory",
@@ -42,6 +43,37 @@ pub fn stack_files(path: &Path) -> Result<Vec<PathBuf>, String> {
         ));
     }
     Ok(files)
+}
+
+/// Compares names with runs of ASCII digits taken as numbers (`s2` < `s10`); equal numbers
+/// with different zero padding, and everything else, compare as text.
+pub fn natural_cmp(a: &str, b: &str) -> std::cmp::Ordering {
+    use std::cmp::Ordering;
+    let (mut x, mut y) = (a.as_bytes(), b.as_bytes());
+    while let (Some(&c), Some(&d)) = (x.first(), y.first()) {
+        if c.is_ascii_digit() && d.is_ascii_digit() {
+            let run = |s: &[u8]| s.iter().take_while(|b| b.is_ascii_digit()).count();
+            let (n, m) = (run(x), run(y));
+            let trim = |s: &[u8]| {
+                let z = s.iter().take_while(|&&b| b == b'0').count();
+                s[z..].to_vec()
+            };
+            let (p, q) = (trim(&x[..n]), trim(&y[..m]));
+            let o = p.len().cmp(&q.len()).then_with(|| p.cmp(&q));
+            if o != Ordering::Equal {
+                return o;
+            }
+            x = &x[n..];
+            y = &y[m..];
+        } else {
+            if c != d {
+                return c.cmp(&d);
+            }
+            x = &x[1..];
+            y = &y[1..];
+        }
+    }
+    x.len().cmp(&y.len()).then_with(|| a.cmp(b))
 }
 
 fn open(file: &Path) -> Result<Decoder<BufReader<File>>, String> {
@@ -130,8 +162,14 @@ pub fn tiff_header(path: &Path) -> Result<crate::headers::Header, String> {
     })
 }
 
-/// Reads a whole stack (x fastest, then y, then z).
+/// Reads a whole stack (x fastest, then y, then z). The size the page headers declare is
+/// checked against the memory available before any page is decoded.
 pub fn read_tiff(path: &Path) -> Result<Volume, String> {
+    let head = tiff_header(path)?.probe;
+    let bytes = grainpipe_core::checked_product(&head.dims)
+        .and_then(|n| n.checked_mul(head.elem_bytes + 8))
+        .map(|b| b as u64);
+    crate::volume::check_declared(&format!("{}: the stack", path.display()), bytes)?;
     let mut slices: Vec<DecodingResult> = Vec::new();
     let (probe, cal) = for_each_page(path, |file, d| {
         slices.push(
@@ -247,6 +285,12 @@ fn calibration<R: std::io::Read + std::io::Seek>(d: &mut Decoder<R>) -> Calibrat
         .flatten()
         .and_then(|v| v.into_string().ok())
         .unwrap_or_default();
+    // grainpipe writes its description ASCII-escaped (see `ascii_escape`).
+    let desc = if desc.contains("grainpipe_spacing_m=") {
+        ascii_unescape(&desc)
+    } else {
+        desc
+    };
     let key = |k: &str| {
         desc.lines()
             .find_map(|l| l.strip_prefix(k).and_then(|r| r.strip_prefix('=')))
@@ -361,11 +405,60 @@ fn description(v: VolumeRef, pages: usize, prov: &grainpipe_core::Provenance) ->
     for (k, val) in &prov.entries {
         s.push_str(&format!("grainpipe_{}={}\n", one_line(k), one_line(val)));
     }
-    s
+    ascii_escape(&s)
 }
 
 fn one_line(s: &str) -> String {
     s.replace(['\n', '\r', '='], " ")
+}
+
+/// TIFF ASCII tags hold 7-bit text (the encoder refuses anything else, and a pipeline's YAML
+/// in the provenance may hold "µm"): every character outside printable ASCII and newline
+/// becomes `\u{hex}`, a backslash `\\`. [`ascii_unescape`] reverses it.
+pub fn ascii_escape(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '\\' => out.push_str("\\\\"),
+            '\n' | ' '..='~' => out.push(c),
+            c => out.push_str(&format!("\\u{{{:x}}}", c as u32)),
+        }
+    }
+    out
+}
+
+/// The text [`ascii_escape`] was given.
+pub fn ascii_unescape(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    let mut rest = s;
+    while let Some(i) = rest.find('\\') {
+        out.push_str(&rest[..i]);
+        let tail = &rest[i + 1..];
+        if let Some(t) = tail.strip_prefix('\\') {
+            out.push('\\');
+            rest = t;
+            continue;
+        }
+        let decoded = tail
+            .strip_prefix("u{")
+            .and_then(|t| t.split_once('}'))
+            .and_then(|(hex, after)| {
+                let c = u32::from_str_radix(hex, 16).ok().and_then(char::from_u32)?;
+                Some((c, after))
+            });
+        match decoded {
+            Some((c, after)) => {
+                out.push(c);
+                rest = after;
+            }
+            None => {
+                out.push('\\');
+                rest = tail;
+            }
+        }
+    }
+    out.push_str(rest);
+    out
 }
 
 /// Pixels per micrometre as a TIFF rational n/d, with the largest power-of-ten d that keeps
@@ -540,11 +633,29 @@ fn write_directory(path: &Path, v: VolumeRef, pages: &Pages, desc: &str) -> Resu
         std::fs::create_dir_all(parent)
             .map_err(|e| format!("cannot create directory {}: {e}", parent.display()))?;
     }
+    // Temporary directories a killed export left (slices of a whole stack) go first.
+    grainpipe_core::fsutil::clean_stale_temps_of(&dir);
     let tmp = grainpipe_core::fsutil::temp_path_for(&dir);
     std::fs::create_dir(&tmp).map_err(|e| format!("{}: {e}", tmp.display()))?;
+    grainpipe_core::fsutil::temp_started(&tmp);
+    let result = fill_and_swap(&dir, &tmp, &stem, v, pages, desc);
+    grainpipe_core::fsutil::temp_done(&tmp);
+    result
+}
+
+/// The slices into `tmp`, then `tmp` swapped in for `dir` (see [`write_directory`]).
+fn fill_and_swap(
+    dir: &Path,
+    tmp: &Path,
+    stem: &str,
+    v: VolumeRef,
+    pages: &Pages,
+    desc: &str,
+) -> Result<(), String> {
     let nz = v.grid().dims[2];
     let width = nz.saturating_sub(1).to_string().len().max(4);
     let written = (0..nz).try_for_each(|z| {
+        grainpipe_core::fsutil::check_interrupt()?;
         let f = tmp.join(format!("{stem}_{z:0width$}.tif"));
         write_file(&f, v, pages, z..z + 1, desc)?;
         File::open(&f)
@@ -552,15 +663,15 @@ fn write_directory(path: &Path, v: VolumeRef, pages: &Pages, desc: &str) -> Resu
             .map_err(|e| format!("{}: {e}", f.display()))
     });
     let swapped = written.and_then(|()| {
-        let old = grainpipe_core::fsutil::temp_path_for(&dir);
+        let old = grainpipe_core::fsutil::temp_path_for(dir);
         let had_old = dir.exists();
         if had_old {
-            std::fs::rename(&dir, &old)
+            std::fs::rename(dir, &old)
                 .map_err(|e| format!("cannot move {} aside: {e}", dir.display()))?;
         }
-        std::fs::rename(&tmp, &dir).map_err(|e| {
+        std::fs::rename(tmp, dir).map_err(|e| {
             if had_old {
-                let _ = std::fs::rename(&old, &dir);
+                let _ = std::fs::rename(&old, dir);
             }
             format!("cannot move {} to {}: {e}", tmp.display(), dir.display())
         })?;
@@ -570,7 +681,7 @@ fn write_directory(path: &Path, v: VolumeRef, pages: &Pages, desc: &str) -> Resu
         Ok(())
     });
     if swapped.is_err() {
-        let _ = std::fs::remove_dir_all(&tmp);
+        let _ = std::fs::remove_dir_all(tmp);
     }
     swapped.map_err(|e| format!("writing {}: {e}", dir.display()))
 }
@@ -630,8 +741,22 @@ crate::vtk_xml::exporter!(
         default: serde_json::json!("file"),
     }],
     check: check_tiff_options,
-    write: write_tiff_options
+    write: write_tiff_options,
+    paths: tiff_written_paths
 );
+
+/// A `stack: file` export writes its file; a `stack: directory` export replaces the
+/// directory named like the file (`out/ct.tif` -> `out/ct/`) as a whole.
+fn tiff_written_paths(
+    path: &Path,
+    options: &grainpipe_core::registry::ExportOptions,
+) -> Vec<grainpipe_core::registry::WrittenPath> {
+    use grainpipe_core::registry::WrittenPath;
+    match stack_layout(options) {
+        Ok(StackLayout::Directory) => vec![WrittenPath::directory(slice_directory(path).0)],
+        _ => vec![WrittenPath::file(path)],
+    }
+}
 
 fn stack_layout(options: &grainpipe_core::registry::ExportOptions) -> Result<StackLayout, String> {
     Ok(options

@@ -88,8 +88,9 @@ impl Volume {
             ));
         }
         let grid = self.grid(&what)?;
-        let labels: Vec<u8> = match &self.data {
-            VolumeData::U8(v) => v.clone(),
+        let labels: Vec<u8> = match self.data {
+            // moved, not copied: a volume may be most of the memory
+            VolumeData::U8(v) => v,
             other => {
                 let mut out = Vec::with_capacity(other.len());
                 for i in 0..other.len() {
@@ -290,4 +291,100 @@ pub struct Probe {
     pub elem_bytes: usize,
     pub spacing: Option<[f64; 3]>,
     pub origin: Option<[f64; 3]>,
+}
+
+/// Memory a reader may allocate for the data a file declares [bytes]: what the system can
+/// still give (the budget `pipe run`/`pipe validate` hold the plan to), or no limit where it
+/// is unknown. Readers compare a declared size against it before allocating, so a small file
+/// declaring a huge array fails with a message instead of aborting on allocation.
+pub fn memory_budget() -> u64 {
+    grainpipe_core::engine::available_memory().unwrap_or(u64::MAX)
+}
+
+/// Refuses to read `what` when the `bytes` it declares (`None`: the size overflows) exceed
+/// [`memory_budget`].
+pub fn check_declared(what: &str, bytes: Option<u64>) -> Result<(), String> {
+    let budget = memory_budget();
+    match bytes {
+        Some(b) if b <= budget => Ok(()),
+        Some(b) => Err(format!(
+            "{what} declares {} of data, more than the {} of memory available; the file \
+             is corrupt or too large for this machine",
+            grainpipe_core::engine::human_bytes(b),
+            grainpipe_core::engine::human_bytes(budget)
+        )),
+        None => Err(format!(
+            "{what} declares a size that overflows; the file is corrupt"
+        )),
+    }
+}
+
+/// Bytes of one value of the [`VolumeData`] a reader makes of `elem_bytes`-wide file elements
+/// of type `dtype` (as the header readers name it), at most: unsigned 8-bit stays 8-bit,
+/// signed 8-bit and 16-bit become at most i32, 32-bit stays or becomes f64 (u32), 64-bit
+/// stays 64-bit.
+pub fn volume_value_bytes(dtype: &str, elem_bytes: usize) -> usize {
+    let signed8 = !["u8", "UInt8", "Unsigned(", "(U8)", "Boolean"]
+        .iter()
+        .any(|s| dtype.contains(s));
+    // u32 (and a 32-bit TIFF page, which may be u32) widens to f64.
+    let unsigned32 = ["UInt32", "Unsigned(", "(U32)", "32-bit"]
+        .iter()
+        .any(|s| dtype.contains(s));
+    match elem_bytes {
+        1 if !signed8 => 1,
+        1 | 2 => 4,
+        4 if !unsigned32 => 4,
+        _ => 8,
+    }
+}
+
+/// The scan of values that must be phase labels (integers 0..=255), fed in blocks so a
+/// volume need not be in memory: the first value that is not a label, and the range of all.
+#[derive(Clone, Debug)]
+pub struct LabelScan {
+    seen: usize,
+    first_bad: Option<(usize, f64)>,
+    lo: f64,
+    hi: f64,
+}
+
+impl Default for LabelScan {
+    fn default() -> Self {
+        LabelScan {
+            seen: 0,
+            first_bad: None,
+            lo: f64::INFINITY,
+            hi: f64::NEG_INFINITY,
+        }
+    }
+}
+
+impl LabelScan {
+    /// The next values, in file order (x fastest).
+    pub fn feed(&mut self, values: impl Iterator<Item = f64>) {
+        for x in values {
+            if self.first_bad.is_none() && (!(0.0..=255.0).contains(&x) || x.fract() != 0.0) {
+                self.first_bad = Some((self.seen, x));
+            }
+            self.lo = self.lo.min(x);
+            self.hi = self.hi.max(x);
+            self.seen += 1;
+        }
+    }
+
+    /// The first voxel whose value is not a phase label, as (x, y, z) and the value, with
+    /// what to do about it.
+    pub fn result(&self, dims: [usize; 3]) -> Result<(), String> {
+        let Some((i, v)) = self.first_bad else {
+            return Ok(());
+        };
+        let [nx, ny, _] = dims;
+        let (x, y, z) = (i % nx, (i / nx) % ny, i / (nx * ny));
+        Err(format!(
+            "voxel (x={x}, y={y}, z={z}) holds {v}; phase labels are integers 0..=255 (values \
+             span {} .. {}): import it with `as: field`, or relabel/threshold it first",
+            self.lo, self.hi
+        ))
+    }
 }

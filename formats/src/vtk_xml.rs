@@ -710,11 +710,25 @@ macro_rules! exporter {
     };
     // A format with options: `$options` lists them, `$check` validates their values at
     // preflight, `$write` writes with the options (every declared one, defaults filled in).
+    // Every file an export writes besides its target (`paths:` gives them all, the target
+    // first); by default the target alone.
+    (@paths) => {};
+    (@paths $paths:path) => {
+        fn written_paths(
+            &self,
+            path: &std::path::Path,
+            options: &grainpipe_core::registry::ExportOptions,
+        ) -> Vec<grainpipe_core::registry::WrittenPath> {
+            $paths(path, options)
+        }
+    };
     ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr,
-     options: $options:expr, check: $check:path, write: $write:path) => {
+     options: $options:expr, check: $check:path, write: $write:path
+     $(, paths: $paths:path)?) => {
         pub struct $ty;
         impl grainpipe_core::Exporter for $ty {
             $crate::vtk_xml::exporter!(@identity $name, $ext, [$($kind),*], $doc);
+            $crate::vtk_xml::exporter!(@paths $($paths)?);
             fn options(&self) -> Vec<grainpipe_core::registry::ExportOption> {
                 $options
             }
@@ -735,10 +749,12 @@ macro_rules! exporter {
             }
         }
     };
-    ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr, $write:path) => {
+    ($ty:ident, $name:expr, $ext:expr, [$($kind:ident),*], $doc:expr, $write:path
+     $(, paths: $paths:path)?) => {
         pub struct $ty;
         impl grainpipe_core::Exporter for $ty {
             $crate::vtk_xml::exporter!(@identity $name, $ext, [$($kind),*], $doc);
+            $crate::vtk_xml::exporter!(@paths $($paths)?);
             fn write(
                 &self,
                 a: &grainpipe_core::Artifact,
@@ -949,6 +965,16 @@ impl Encoding {
     /// The payload of an array stored in its element (`ascii` or `binary`); appended arrays
     /// need the file's appended block ([`VtkFile::array_payload`]).
     pub fn inline_payload(&self, node: &Node) -> Result<Payload, String> {
+        self.inline_payload_sized(node, None)
+    }
+
+    /// [`Encoding::inline_payload`] of an array that must hold `expect` bytes (when given):
+    /// a size header stating another size is refused before anything is allocated.
+    pub fn inline_payload_sized(
+        &self,
+        node: &Node,
+        expect: Option<usize>,
+    ) -> Result<Payload, String> {
         let name = node.attr("Name").unwrap_or("?");
         let ctx = |e: String| format!("array `{name}`: {e}");
         match node.attr("format").unwrap_or("ascii") {
@@ -961,19 +987,22 @@ impl Encoding {
                     .bytes()
                     .filter(|b| !b.is_ascii_whitespace())
                     .collect();
-                self.binary_inline(&text).map(Payload::Bytes).map_err(ctx)
+                self.binary_inline(&text, expect)
+                    .map(Payload::Bytes)
+                    .map_err(ctx)
             }
             f => Err(ctx(format!("unknown format `{f}`"))),
         }
     }
 
-    fn binary_inline(&self, text: &[u8]) -> Result<Vec<u8>, String> {
+    fn binary_inline(&self, text: &[u8], expect: Option<usize>) -> Result<Vec<u8>, String> {
         let hs = self.hsize();
         let dec = |t: &[u8]| B64.decode(t).map_err(|e| format!("bad base64: {e}"));
         if !self.compressed {
             // Header and data are one base64 stream.
             let all = dec(text)?;
             let n = self.header_value(all.get(..hs).ok_or("truncated array")?);
+            check_expected(n, expect)?;
             return hs
                 .checked_add(n)
                 .and_then(|end| all.get(hs..end))
@@ -994,7 +1023,7 @@ impl Encoding {
             .ok_or_else(|| format!("header claims {nblocks} blocks, more than the array holds"))?;
         let header = dec(text.get(..hlen).ok_or("truncated header")?)?;
         let body = dec(&text[hlen..])?;
-        self.inflate(&header, &body)
+        self.inflate(&header, &body, expect)
     }
 
     /// Inflates zlib blocks. Every size comes from the file, so none is trusted: the header
@@ -1002,7 +1031,12 @@ impl Encoding {
     /// must not overflow, and no block may inflate past what its header entry says. The
     /// allocation is bounded by what the body can possibly inflate to (zlib's ratio is at
     /// most 1032:1), so a header claiming 2^40 bytes in a small file allocates nothing large.
-    fn inflate(&self, header: &[u8], body: &[u8]) -> Result<Vec<u8>, String> {
+    fn inflate(
+        &self,
+        header: &[u8],
+        body: &[u8],
+        expect: Option<usize>,
+    ) -> Result<Vec<u8>, String> {
         const MAX_ZLIB_RATIO: usize = 1032;
         let hs = self.hsize();
         let h: Vec<usize> = header
@@ -1029,6 +1063,7 @@ impl Encoding {
                 .and_then(|t| t.checked_add(if last != 0 { last } else { bsize })),
         }
         .ok_or("compression header: uncompressed size overflows")?;
+        check_expected(total, expect)?;
         let possible = body.len().saturating_mul(MAX_ZLIB_RATIO).saturating_add(64);
         if total > possible {
             return Err(format!(
@@ -1067,6 +1102,17 @@ impl Encoding {
             }
         }
         Ok(out)
+    }
+}
+
+/// A size header against the size the extent implies: checked before the array is
+/// allocated, so a header claiming gigabytes in a small file (or a zlib bomb) is refused.
+fn check_expected(stated: usize, expect: Option<usize>) -> Result<(), String> {
+    match expect {
+        Some(e) if e != stated => Err(format!(
+            "its size header states {stated} bytes but the extent needs {e}"
+        )),
+        _ => Ok(()),
     }
 }
 
@@ -1127,8 +1173,17 @@ impl VtkFile {
     /// The bytes of a binary or appended array (decompressed, in the file's byte order), or
     /// the whitespace-separated tokens of an ascii array.
     pub fn array_payload(&self, node: &Node) -> Result<Payload, String> {
+        self.array_payload_sized(node, None)
+    }
+
+    /// [`VtkFile::array_payload`] of an array that must hold `expect` bytes (when given).
+    pub fn array_payload_sized(
+        &self,
+        node: &Node,
+        expect: Option<usize>,
+    ) -> Result<Payload, String> {
         if node.attr("format") != Some("appended") {
-            return self.enc.inline_payload(node);
+            return self.enc.inline_payload_sized(node, expect);
         }
         let name = node.attr("Name").unwrap_or("?");
         let ctx = |e: String| format!("array `{name}`: {e}");
@@ -1136,10 +1191,12 @@ impl VtkFile {
             .attr("offset")
             .and_then(|o| o.parse().ok())
             .ok_or_else(|| ctx("appended array without offset".into()))?;
-        self.appended_at(off).map(Payload::Bytes).map_err(ctx)
+        self.appended_at(off, expect)
+            .map(Payload::Bytes)
+            .map_err(ctx)
     }
 
-    fn appended_at(&self, off: usize) -> Result<Vec<u8>, String> {
+    fn appended_at(&self, off: usize, expect: Option<usize>) -> Result<Vec<u8>, String> {
         let enc = &self.enc;
         let hs = enc.hsize();
         if !self.appended_raw {
@@ -1148,7 +1205,7 @@ impl VtkFile {
                 .appended
                 .get(off..)
                 .ok_or("offset past the appended data")?;
-            return enc.binary_inline(tail);
+            return enc.binary_inline(tail, expect);
         }
         let a = &self.appended;
         let at = |i: usize, n: usize| {
@@ -1158,6 +1215,7 @@ impl VtkFile {
         };
         if !enc.compressed {
             let n = enc.header_value(at(off, hs)?);
+            check_expected(n, expect)?;
             return Ok(at(off + hs, n)?.to_vec());
         }
         let nblocks = enc.header_value(at(off, hs)?);
@@ -1171,12 +1229,21 @@ impl VtkFile {
             .try_fold(0usize, |acc, c| acc.checked_add(enc.header_value(c)))
             .ok_or("compressed sizes overflow")?;
         let body = at(off + header.len(), csum)?;
-        enc.inflate(header, body)
+        enc.inflate(header, body, expect)
     }
 
     /// Decodes an array as numbers of its declared type.
     pub fn array_values(&self, node: &Node) -> Result<VolumeData, String> {
-        let payload = self.array_payload(node)?;
+        self.array_values_sized(node, None)
+    }
+
+    /// [`VtkFile::array_values`] of an array that must hold `expect` bytes (when given).
+    pub fn array_values_sized(
+        &self,
+        node: &Node,
+        expect: Option<usize>,
+    ) -> Result<VolumeData, String> {
+        let payload = self.array_payload_sized(node, expect)?;
         payload.values(node, self.enc.little)
     }
 
@@ -1432,13 +1499,24 @@ pub fn read_vti(path: &Path, array: Option<&str>) -> Result<Volume, String> {
     })?;
     let (dims, spacing, origin) = grid.voxels(is_cell);
     let components = array_components(node);
-    let data = f.array_values(node).map_err(at)?;
     let expect = grainpipe_core::checked_product(&[dims[0], dims[1], dims[2], components])
         .ok_or_else(|| {
             at(format!(
                 "extent {dims:?} x {components} components overflows"
             ))
         })?;
+    // Binary payloads must hold exactly what the extent needs, and no more than the memory
+    // available may be allocated for them: checked before decoding (or inflating) anything.
+    let elem = vtk_type_size(node.attr("type").unwrap_or("Float32"));
+    let expect_bytes = elem.and_then(|b| expect.checked_mul(b));
+    if node.attr("format").unwrap_or("ascii") != "ascii" {
+        crate::volume::check_declared(
+            &format!("array `{}`", node.attr("Name").unwrap_or("?")),
+            expect_bytes.map(|b| b as u64),
+        )
+        .map_err(at)?;
+    }
+    let data = f.array_values_sized(node, expect_bytes).map_err(at)?;
     if data.len() != expect {
         return Err(at(format!(
             "array `{}` holds {} values; extent {dims:?} x {components} components needs {expect}",

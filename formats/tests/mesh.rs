@@ -391,8 +391,11 @@ fn preflight_checks_phases_against_the_announced_table_and_counts_memory() {
         .unwrap_err();
     assert_eq!(key, "mesh");
     // The .xdmf writes its .h5 too: the engine's duplicate check sees both.
-    let paths = XdmfExporter.written_paths(std::path::Path::new("out/a.xdmf"));
-    assert_eq!(paths[1], std::path::Path::new("out/a.h5"));
+    let paths = XdmfExporter.written_paths(
+        std::path::Path::new("out/a.xdmf"),
+        &XdmfExporter.default_options(),
+    );
+    assert_eq!(paths[1].path, std::path::Path::new("out/a.h5"));
 }
 
 #[test]

@@ -682,7 +682,9 @@ fn import_raw_preflight_checks_size_and_run_gives_labels() {
         ..RawParams::default()
     };
     let pf = ImportRaw.preflight(&params, &InputMetas::new()).unwrap();
-    assert_eq!(pf.memory_bytes, 2 * 24);
+    // the bytes as stored, the values as read and the labels (issue 35: the values read
+    // were not counted)
+    assert_eq!(pf.memory_bytes, 3 * 24);
     assert_eq!(pf.outputs["image"].grid.as_ref().unwrap().dims, [4, 3, 2]);
     let out = ImportRaw
         .run(&params, &pf.plan, &Inputs::new(), &ctx())
@@ -858,7 +860,13 @@ fn import_hdf5_netcdf_vti_round_trip_through_the_stages() {
         ..Default::default()
     };
     let pf = ImportVti.preflight(&vp, &InputMetas::new()).unwrap();
-    assert_eq!(pf.memory_bytes, (5 * 4 * 3 * 3 * (4 + 4)) as u64);
+    // stored, read and output values, and the file parsed in memory (bytes, XML text,
+    // appended block)
+    let file = std::fs::metadata(&vti).unwrap().len();
+    assert_eq!(
+        pf.memory_bytes,
+        (5 * 4 * 3 * 3 * (4 + 4 + 4)) as u64 + 3 * file
+    );
     let out = ImportVti
         .run(&vp, &pf.plan, &Inputs::new(), &ctx())
         .unwrap();

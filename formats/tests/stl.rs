@@ -135,3 +135,49 @@ fn image_surface_is_watertight_and_encloses_the_phase_volume() {
         .unwrap_err();
     assert!(e.contains("0 (pore), 2 (grain)"), "{e}");
 }
+
+/// Issue 35: an image's STL is written layer by layer (never the whole surface in memory),
+/// byte for byte what the collected surface gives; the export's memory estimate is one
+/// layer, not the surface.
+#[test]
+fn image_stl_streams_the_same_bytes_and_estimates_one_layer() {
+    let n = 16usize;
+    let grid = Grid {
+        dims: [n, n, n],
+        spacing: [1e-6; 3],
+        origin: [0.0; 3],
+        periodic: [false; 3],
+    };
+    let labels: Vec<u8> = (0..n * n * n)
+        .map(|i| u8::from((i * 7919) % 5 < 2))
+        .collect();
+    let img = PhaseImage {
+        grid: grid.clone(),
+        labels,
+        phases: vec![],
+    };
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path().join("a.stl");
+    let a = Artifact::PhaseImage(img.clone());
+    StlExporter
+        .write_defaults(&a, &p, &Provenance::default())
+        .unwrap();
+    let want =
+        grainpipe_formats::stl::stl_bytes(&phase_surface(&img, 1), 1e3, "grainpipe  STL").unwrap();
+    assert_eq!(std::fs::read(&p).unwrap(), want);
+    let meta = ArtifactMeta::on_grid(ArtifactKind::PhaseImage, grid);
+    let est = StlExporter.memory_bytes(&meta, &StlExporter.default_options());
+    assert!(est < 16 << 20, "{est}");
+    // A 333^3 image: one layer of triangles (about 1 GB in memory for the whole surface
+    // before), still a few MiB.
+    let big = ArtifactMeta::on_grid(
+        ArtifactKind::PhaseImage,
+        Grid {
+            dims: [333; 3],
+            spacing: [1e-6; 3],
+            origin: [0.0; 3],
+            periodic: [false; 3],
+        },
+    );
+    assert!(StlExporter.memory_bytes(&big, &StlExporter.default_options()) < 128 << 20);
+}

@@ -176,3 +176,72 @@ fn tiff_import_announces_its_grid() {
         assert_eq!(img.grid.origin, [0.0, 1e-3, 0.0]);
     }
 }
+
+/// Issue 35: slices numbered without padding (s1, s2, s10) are read in natural order, not
+/// plain name order (which put s10 before s2).
+#[test]
+fn directory_slices_numbered_without_padding_are_read_in_natural_order() {
+    let dir = tempfile::tempdir().unwrap();
+    for z in [10usize, 2, 1, 0, 9] {
+        let page = vec![z as u8; 4];
+        let mut enc =
+            TiffEncoder::new(std::fs::File::create(dir.path().join(format!("s{z}.tif"))).unwrap())
+                .unwrap();
+        enc.write_image::<colortype::Gray8>(2, 2, &page).unwrap();
+    }
+    let v = read_tiff(dir.path()).unwrap();
+    let order: Vec<f64> = (0..5).map(|z| v.data.get(4 * z)).collect();
+    assert_eq!(order, [0.0, 1.0, 2.0, 9.0, 10.0]);
+    use grainpipe_formats::tiff_io::natural_cmp;
+    assert!(natural_cmp("ct_2.tif", "ct_10.tif").is_lt());
+    assert!(natural_cmp("a10b2", "a10b10").is_lt());
+    assert!(natural_cmp("ct_0002.tif", "ct_10.tif").is_lt());
+}
+
+/// Issue 35: the description of a TIFF export holds the pipeline's YAML, which may hold
+/// "µm"; TIFF ASCII tags hold 7-bit text, so it is escaped, and read back exactly.
+#[test]
+fn non_ascii_provenance_is_escaped_in_the_description_and_read_back() {
+    use grainpipe_formats::tiff_io::{ascii_escape, ascii_unescape};
+    for s in ["5 µm", "a\\u{b5}b", "tab\there", "∅ — 😀", "plain\nlines\\"] {
+        let e = ascii_escape(s);
+        assert!(
+            e.bytes().all(|b| b == b'\n' || (b' '..=b'~').contains(&b)),
+            "{e}"
+        );
+        assert_eq!(ascii_unescape(&e), s);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let img = grainpipe_core::Artifact::PhaseImage(grainpipe_core::PhaseImage {
+        grid: grainpipe_core::Grid {
+            dims: [3, 2, 2],
+            spacing: [2e-6; 3],
+            origin: [0.0; 3],
+            periodic: [false; 3],
+        },
+        labels: vec![0, 1, 1, 0, 1, 1, 0, 0, 1, 1, 1, 0],
+        phases: vec![
+            grainpipe_core::Phase {
+                id: 0,
+                name: "pore".into(),
+            },
+            grainpipe_core::Phase {
+                id: 1,
+                name: "grain µ".into(),
+            },
+        ],
+    });
+    let mut prov = grainpipe_core::Provenance::default();
+    prov.entries
+        .insert("pipeline_yaml".into(), "# 5 µm voxels\nname: t\n".into());
+    let p = dir.path().join("a.tif");
+    for layout in [
+        grainpipe_formats::tiff_io::StackLayout::File,
+        grainpipe_formats::tiff_io::StackLayout::Directory,
+    ] {
+        grainpipe_formats::tiff_io::write_tiff(&img, &p, &prov, layout).unwrap();
+    }
+    let v = read_tiff(&p).unwrap();
+    assert_eq!(v.spacing, Some([2e-6; 3]));
+    assert_eq!(v.phases[1].name, "grain µ");
+}

@@ -8,7 +8,7 @@ use super::{abaqus, emit, gmsh, xdmf, CellKind, Column, Dtype, Mesh, VoxelHexMes
 use crate::h5util::{self, provenance_attrs, H5Result};
 use crate::vtk_xml::graph_lines;
 use grainpipe_core::fsutil::atomic_write;
-use grainpipe_core::registry::{ExportOption, ExportOptions};
+use grainpipe_core::registry::{ExportOption, ExportOptions, WrittenPath};
 use grainpipe_core::serde_json::{json, Value};
 use grainpipe_core::{
     Artifact, ArtifactKind, ArtifactMeta, BodyShape, Exporter, FieldData, Phase, PhaseImage,
@@ -596,8 +596,11 @@ impl Exporter for XdmfExporter {
         h5util::check_compression(o)?;
         Ok(())
     }
-    fn written_paths(&self, path: &Path) -> Vec<PathBuf> {
-        vec![path.to_path_buf(), xdmf_heavy_path(path)]
+    fn written_paths(&self, path: &Path, _: &ExportOptions) -> Vec<WrittenPath> {
+        vec![
+            WrittenPath::file(path),
+            WrittenPath::file(xdmf_heavy_path(path)),
+        ]
     }
     fn preflight(&self, meta: &ArtifactMeta, o: &ExportOptions) -> Result<u64, (String, String)> {
         if xdmf_image(o)? {
