@@ -302,9 +302,9 @@ pub fn table7_html(rows: &[(String, [f64; 12], f64)]) -> String {
         "table7",
         &["approximation".into(), "moduli".into(), "error".into()],
         &body,
-        "Layout of Table 7 of the paper: the closest isotropic, transversely isotropic (axis z, \
-         E_L along z) and orthotropic stiffness and its relative distance (Mandel norm) to the \
-         apparent stiffness.",
+        "The closest isotropic, transversely isotropic (axis z, E_L along z) and orthotropic \
+         stiffness and its relative distance (Mandel norm) to the apparent stiffness (the layout \
+         of Table 7 of Donval et al. 2025).",
     );
     let mut head: Vec<String> = vec!["approximation".into()];
     for (k, n) in numbers::ENGINEERING_NAMES.iter().enumerate() {
@@ -408,8 +408,7 @@ pub fn stiffness_html(it: &Item, constants: Option<&Item>) -> String {
             if let Some(a) = rows.iter().find(|r| r.0 == "apparent") {
                 let _ = write!(
                     s,
-                    "<p>Anisotropy: E_x / E_z = {}, E_y / E_z = {} (the paper reports E_z 12–17 % \
-                     below the in-plane moduli on average).</p>",
+                    "<p>Anisotropy: E_x / E_z = {}, E_y / E_z = {}.</p>",
                     num(a.1[0] / a.1[2]),
                     num(a.1[1] / a.1[2])
                 );
