@@ -431,10 +431,10 @@ fn check_surface_options(o: &ExportOptions) -> Result<bool, (String, String)> {
     Ok(surface)
 }
 
-/// Triangles preflight assumes per voxel of an image (measured: 0.21 for a ball filling
-/// half the box at 140^3, 0.6-0.9 for packings of 10-20 voxel grains, up to 2 for
-/// three-phase images with binder; 2.5 leaves a margin).
-pub const SURFACE_TRIANGLES_PER_VOXEL: f64 = 2.5;
+/// Triangles preflight assumes per voxel of an image (measured by `mesh_bench`: 0.47 for a
+/// ball filling half of a 140^3 box, 3.4 for balls of radius 6 voxels with 2-voxel binder
+/// shells; independent random labels, no microstructure, reach 26.5 and exceed it).
+pub const SURFACE_TRIANGLES_PER_VOXEL: f64 = 4.0;
 
 /// Memory of a surface export of a `dims` image [bytes].
 pub fn surface_memory(dims: [usize; 3], smooth: bool) -> u64 {
