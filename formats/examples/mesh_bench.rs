@@ -88,6 +88,11 @@ fn main() {
             json!({"mesh": "surface", "smooth": 10}),
         ),
         (
+            "surface_s10_d25.vtu",
+            Box::new(VtuExporter),
+            json!({"mesh": "surface", "smooth": 10, "decimate": 0.25}),
+        ),
+        (
             "surface.msh",
             Box::new(GmshExporter),
             json!({"mesh": "surface"}),

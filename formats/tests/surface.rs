@@ -8,7 +8,9 @@
 use grainpipe_core::registry::ExportOptions;
 use grainpipe_core::serde_json::json;
 use grainpipe_core::*;
-use grainpipe_formats::mesh::surface::{area_and_volume, interfaces, taubin_smooth, InterfaceMesh};
+use grainpipe_formats::mesh::surface::{
+    area_and_volume, decimate, interfaces, taubin_smooth, InterfaceMesh,
+};
 use grainpipe_formats::mesh::{GmshExporter, VtuExporter};
 use std::collections::HashMap;
 use std::f64::consts::PI;
@@ -134,6 +136,87 @@ fn taubin_smoothing_keeps_the_volume_and_removes_the_area_bias() {
             (m.points.len(), m.triangles.clone())
         );
     }
+}
+
+/// Decimation (meshoptimizer, half-voxel error bound) of the smoothed r = 20 h sphere to a
+/// quarter of its triangles: at most 0.25 of the triangles (+1 %) remain, the sphere is
+/// still closed and welded (every edge in two triangles, once per direction, Euler
+/// characteristic 2), its volume within the half-voxel shell of the undecimated one
+/// (|dV| <= A h / 2) and in fact within 1 %, and unused points are dropped. On the
+/// three-phase laminate with a ball, the junction lines (points on two interfaces) are kept.
+#[test]
+fn decimation_keeps_a_closed_sphere_and_the_junctions() {
+    let (n, r) = (48usize, 20.0);
+    let mut m = interfaces([n; 3], ORIGIN, [H; 3], &ball(n, r), |_, _| true).unwrap();
+    taubin_smooth(&mut m, 10);
+    let k = index_of(&m, [0, 1]);
+    let before = m.interface_triangles(k).len();
+    let (a, v) = area_and_volume(&m, m.interface_triangles(k));
+    decimate(&mut m, 0.25, [H; 3]);
+    let tris = m.interface_triangles(k);
+    assert!(
+        (tris.len() as f64) <= 0.2525 * before as f64,
+        "{} of {before}",
+        tris.len()
+    );
+    let (und, dir) = edge_counts(tris);
+    assert!(und.values().all(|&c| c == 2));
+    assert!(dir.values().all(|&c| c == 1));
+    let mut verts: Vec<u32> = m.triangles.iter().flatten().copied().collect();
+    verts.sort_unstable();
+    verts.dedup();
+    assert_eq!(verts.len(), m.points.len(), "every point used");
+    let sphere_verts = {
+        let mut s: Vec<u32> = tris.iter().flatten().copied().collect();
+        s.sort_unstable();
+        s.dedup();
+        s.len() as i64
+    };
+    assert_eq!(sphere_verts - und.len() as i64 + tris.len() as i64, 2);
+    let (a1, v1) = area_and_volume(&m, tris);
+    println!(
+        "decimated {before} -> {} triangles, dV/V = {:.2e}, A/A0 - 1 = {:.4} (before {:.4})",
+        tris.len(),
+        v1 / v - 1.0,
+        a1 / (4.0 * PI * (r * H).powi(2)) - 1.0,
+        a / (4.0 * PI * (r * H).powi(2)) - 1.0
+    );
+    assert!((v1 - v).abs() <= a * H / 2.0);
+    assert!((v1 / v - 1.0).abs() < 0.01, "{}", v1 / v - 1.0);
+
+    // Junctions: a ball of 1 cut by a plane into 1 and 2, in 0. The points where three
+    // labels meet (pore|sand|binder) are on the three interfaces before and after.
+    let mut l = ball(24, 9.0);
+    for (i, x) in l.iter_mut().enumerate() {
+        if *x == 1 && i / (24 * 24) >= 12 {
+            *x = 2;
+        }
+    }
+    let m0 = interfaces([24; 3], ORIGIN, [H; 3], &l, |_, _| true).unwrap();
+    let junction = |m: &InterfaceMesh| {
+        let mut on: HashMap<[u64; 3], u8> = HashMap::new();
+        for (t, &k) in m.triangles.iter().zip(&m.interface) {
+            if m.pairs[k as usize][0] < 0 {
+                continue;
+            }
+            for &v in t {
+                *on.entry(m.points[v as usize].map(f64::to_bits))
+                    .or_insert(0) |= 1 << k;
+            }
+        }
+        let mut j: Vec<[u64; 3]> = on
+            .into_iter()
+            .filter(|(_, mask)| mask.count_ones() == 3)
+            .map(|(p, _)| p)
+            .collect();
+        j.sort_unstable();
+        j
+    };
+    let mut m1 = m0.clone();
+    decimate(&mut m1, 0.2, [H; 3]);
+    assert!(m1.triangles.len() < m0.triangles.len() / 2);
+    assert!(!junction(&m0).is_empty());
+    assert_eq!(junction(&m1), junction(&m0));
 }
 
 /// A three-layer laminate along z: pore (0) for z < 3, sand (1) for 3 <= z < 7, binder (2)
@@ -378,6 +461,6 @@ fn surface_options_are_checked() {
     let mem = e.preflight(&meta, &o).unwrap();
     assert_eq!(
         mem,
-        (16 << 20) + grainpipe_formats::mesh::surface_memory([140; 3], true)
+        (16 << 20) + grainpipe_formats::mesh::surface_memory([140; 3], true, false)
     );
 }

@@ -399,6 +399,28 @@ fn smooth_option() -> ExportOption {
     }
 }
 
+fn decimate_option() -> ExportOption {
+    ExportOption {
+        name: "decimate",
+        doc: "`mesh: surface`: fraction of each interface's triangles to keep, 0 < f <= 1 (1 = \
+              none), by meshoptimizer's edge collapses (the `meshopt` crate) moving the \
+              surface by at most half a voxel; junction lines stay",
+        default: json!(1.0),
+    }
+}
+
+fn decimate_fraction(o: &ExportOptions) -> Result<f64, (String, String)> {
+    match o.get("decimate") {
+        None => Ok(1.0),
+        Some(v) => v.as_f64().filter(|&f| f > 0.0 && f <= 1.0).ok_or_else(|| {
+            (
+                "decimate".into(),
+                format!("{v}: give the fraction of triangles to keep, 0 < f <= 1 (e.g. 0.25)"),
+            )
+        }),
+    }
+}
+
 /// Most smoothing iterations accepted.
 const MAX_SMOOTH: u64 = 1000;
 
@@ -428,6 +450,12 @@ fn check_surface_options(o: &ExportOptions) -> Result<bool, (String, String)> {
             "smoothing applies to `mesh: surface`; voxel hexahedra are not smoothed".into(),
         ));
     }
+    if !surface && decimate_fraction(o)? < 1.0 {
+        return Err((
+            "decimate".into(),
+            "decimation applies to `mesh: surface`; voxel hexahedra are not decimated".into(),
+        ));
+    }
     Ok(surface)
 }
 
@@ -437,7 +465,7 @@ fn check_surface_options(o: &ExportOptions) -> Result<bool, (String, String)> {
 pub const SURFACE_TRIANGLES_PER_VOXEL: f64 = 4.0;
 
 /// Memory of a surface export of a `dims` image [bytes].
-pub fn surface_memory(dims: [usize; 3], smooth: bool) -> u64 {
+pub fn surface_memory(dims: [usize; 3], smooth: bool, decimate: bool) -> u64 {
     let voxels = (dims[0] * dims[1] * dims[2]) as f64;
     let tris = SURFACE_TRIANGLES_PER_VOXEL * voxels;
     // A closed triangulation has about half as many points as triangles.
@@ -445,6 +473,11 @@ pub fn surface_memory(dims: [usize; 3], smooth: bool) -> u64 {
     let per_point = surface::BYTES_PER_POINT
         + if smooth {
             surface::SMOOTH_BYTES_PER_POINT
+        } else {
+            0
+        }
+        + if decimate {
+            surface::DECIMATE_BYTES_PER_POINT
         } else {
             0
         };
@@ -464,11 +497,12 @@ fn surface_preflight(meta: &ArtifactMeta, o: &ExportOptions) -> Result<u64, (Str
     }
     mesh_preflight(meta, o, 0)?;
     let smooth = smooth_iterations(o)? > 0;
+    let decimate = decimate_fraction(o)? < 1.0;
     Ok(STREAM_BUFFERS
         + meta
             .grid
             .as_ref()
-            .map_or(0, |g| surface_memory(g.dims, smooth)))
+            .map_or(0, |g| surface_memory(g.dims, smooth, decimate)))
 }
 
 /// The name of a label in interface names: the phase's, `exterior` for the outside.
@@ -502,6 +536,8 @@ pub fn image_surface(
     })?;
     let iterations = smooth_iterations(o).map_err(|(k, e)| format!("option `{k}`: {e}"))?;
     surface::taubin_smooth(&mut m, iterations);
+    let fraction = decimate_fraction(o).map_err(|(k, e)| format!("option `{k}`: {e}"))?;
+    surface::decimate(&mut m, fraction, g.spacing);
     let names = m
         .pairs
         .iter()
@@ -612,7 +648,8 @@ impl Exporter for VtuExporter {
          outside of the image as welded triangles (marching tetrahedra over the voxel centres, \
          as `stl`, extended to many phases), cell data `interface` (id), `phase_a` < \
          `phase_b` (the labels it separates, -1 = exterior; the normal points out of b into \
-         a), field data `interface.<a>|<b>` = [id, a, b]; `smooth: N` Taubin-smooths it. \
+         a), field data `interface.<a>|<b>` = [id, a, b]; `smooth: N` Taubin-smooths it, `decimate: f` keeps \
+         about a fraction f of its triangles (meshoptimizer). \
          Provenance in an XML comment (meshio reads no string arrays)."
     }
     fn options(&self) -> Vec<ExportOption> {
@@ -624,6 +661,7 @@ impl Exporter for VtuExporter {
                  a selected phase on one side (phase images)",
             ),
             smooth_option(),
+            decimate_option(),
             ExportOption {
                 name: "encoding",
                 doc: "`appended` (raw binary after the XML, smallest and fastest), `binary` \
@@ -1001,7 +1039,8 @@ impl Exporter for GmshExporter {
          surface`: the interfaces between phases and with the outside of the image as welded \
          3-node triangles, one surface entity and one physical group (dimension 2) per \
          interface named `<a>|<b>` (tag = the `vtu` interface id), element data views \
-         `phase_a` and `phase_b`; `smooth: N` Taubin-smooths it"
+         `phase_a` and `phase_b`; `smooth: N` Taubin-smooths it, `decimate: f` keeps about a \
+         fraction f of its triangles (meshoptimizer)"
     }
     fn options(&self) -> Vec<ExportOption> {
         vec![
@@ -1011,6 +1050,7 @@ impl Exporter for GmshExporter {
                  triangles of every interface with a selected phase on one side",
             ),
             smooth_option(),
+            decimate_option(),
         ]
     }
     fn check_options(&self, o: &ExportOptions) -> Result<(), (String, String)> {

@@ -66,6 +66,9 @@ pub const BYTES_PER_TRIANGLE: u64 = 12 + 2;
 pub const BYTES_PER_POINT: u64 = 24 + 32;
 /// Extra bytes per point while smoothing (second coordinate buffer, neighbour lists).
 pub const SMOOTH_BYTES_PER_POINT: u64 = 24 + 4 + 6 * 4 + 1;
+/// Extra bytes per point while decimating (interface and local-index tables, locks, f32
+/// positions, the new triangles at two per point, meshoptimizer's working tables).
+pub const DECIMATE_BYTES_PER_POINT: u64 = 4 + 4 + 1 + 12 + 2 * 14 + 64;
 
 /// A multiplicative hash for the packed lattice keys (SipHash is 3x slower here and the
 /// keys are not adversarial).
@@ -450,4 +453,101 @@ pub fn area_and_volume(mesh: &InterfaceMesh, tris: &[[u32; 3]]) -> (f64, f64) {
         vol += dot(a, cross(b, c)) / 6.0;
     }
     (area, vol)
+}
+
+/// Largest distance [voxels] decimation may move the surface (meshoptimizer's absolute
+/// error bound, in voxel units along each axis).
+pub const DECIMATE_MAX_ERROR: f32 = 0.5;
+
+/// Decimates each interface to about `fraction` of its triangles with meshoptimizer's
+/// edge-collapse simplifier (the `meshopt` crate, bindings to zeux/meshoptimizer's
+/// `meshopt_simplifyWithAttributes`): vertices on two or more interfaces and on open borders
+/// are locked, so junction lines and welding are kept; collapses that would move the surface
+/// by more than [`DECIMATE_MAX_ERROR`] voxels are not made (an interface may keep more than
+/// `fraction`). Collapses reuse existing points; points no triangle uses are dropped.
+pub fn decimate(mesh: &mut InterfaceMesh, fraction: f64, spacing: [f64; 3]) {
+    if fraction >= 1.0 || mesh.triangles.is_empty() {
+        return;
+    }
+    let n = mesh.points.len();
+    const NONE: u32 = u32::MAX;
+    let mut first = vec![NONE; n];
+    let mut shared = vec![false; n];
+    for (t, &k) in mesh.triangles.iter().zip(&mesh.interface) {
+        for &v in t {
+            let f = &mut first[v as usize];
+            if *f == NONE {
+                *f = k as u32;
+            } else if *f != k as u32 {
+                shared[v as usize] = true;
+            }
+        }
+    }
+    drop(first);
+    let mut local = vec![NONE; n];
+    let mut triangles = Vec::new();
+    let mut interface = Vec::new();
+    for k in 0..mesh.pairs.len() {
+        let tris = mesh.interface_triangles(k);
+        let mut globals: Vec<u32> = Vec::new();
+        let mut indices: Vec<u32> = Vec::with_capacity(3 * tris.len());
+        for &v in tris.iter().flatten() {
+            if local[v as usize] == NONE {
+                local[v as usize] = globals.len() as u32;
+                globals.push(v);
+            }
+            indices.push(local[v as usize]);
+        }
+        // Positions in voxel units from the first point (f32 keeps ~1e-7 of a voxel).
+        let p0 = mesh.points[globals[0] as usize];
+        let pos: Vec<[f32; 3]> = globals
+            .iter()
+            .map(|&g| {
+                let p = mesh.points[g as usize];
+                [0, 1, 2].map(|a| ((p[a] - p0[a]) / spacing[a]) as f32)
+            })
+            .collect();
+        let locks: Vec<bool> = globals.iter().map(|&g| shared[g as usize]).collect();
+        let target = 3 * ((fraction * tris.len() as f64).round() as usize).max(1);
+        let adapter = meshopt::VertexDataAdapter::new(
+            meshopt::typed_to_bytes(&pos),
+            std::mem::size_of::<[f32; 3]>(),
+            0,
+        )
+        .expect("tightly packed positions");
+        let kept = meshopt::simplify_with_locks(
+            &indices,
+            &adapter,
+            &locks,
+            target,
+            DECIMATE_MAX_ERROR,
+            meshopt::SimplifyOptions::LockBorder | meshopt::SimplifyOptions::ErrorAbsolute,
+            None,
+        );
+        for t in kept.chunks_exact(3) {
+            triangles.push([0, 1, 2].map(|c| globals[t[c] as usize]));
+            interface.push(k as u16);
+        }
+        for &g in &globals {
+            local[g as usize] = NONE;
+        }
+    }
+    // Drop the points no triangle uses; keep the order of the others.
+    let mut renum = vec![NONE; n];
+    for &v in triangles.iter().flatten() {
+        renum[v as usize] = 0;
+    }
+    let mut points = Vec::new();
+    for (v, r) in renum.iter_mut().enumerate() {
+        if *r == 0 {
+            *r = points.len() as u32;
+            points.push(mesh.points[v]);
+        }
+    }
+    for t in triangles.iter_mut() {
+        *t = t.map(|v| renum[v as usize]);
+    }
+    mesh.points = points;
+    mesh.triangles = triangles;
+    mesh.interface = interface;
 }
