@@ -44,8 +44,10 @@ fn index_of(m: &InterfaceMesh, pair: [i32; 2]) -> usize {
         .expect("interface present")
 }
 
+type EdgeCounts = HashMap<(u32, u32), usize>;
+
 /// Undirected edge -> number of triangles, and directed edge -> count.
-fn edge_counts(tris: &[[u32; 3]]) -> (HashMap<(u32, u32), usize>, HashMap<(u32, u32), usize>) {
+fn edge_counts(tris: &[[u32; 3]]) -> (EdgeCounts, EdgeCounts) {
     let mut und = HashMap::new();
     let mut dir = HashMap::new();
     for t in tris {

@@ -202,17 +202,32 @@ pub fn write_surface_msh(
     s.push_str("$EndEntities\n$Nodes\n");
     let _ = writeln!(s, "{ni} {np} {} {np}", np.min(1));
     w.write_all(s.as_bytes())?;
+    // Points grouped by owning interface (a counting sort), in point order within each.
+    let mut start = vec![0usize; ni + 1];
+    for &o in &owner {
+        start[o as usize + 1] += 1;
+    }
+    for k in 0..ni {
+        start[k + 1] += start[k];
+    }
+    let mut grouped = vec![0u32; np];
+    let mut fill = start.clone();
+    for (v, &o) in owner.iter().enumerate() {
+        grouped[fill[o as usize]] = v as u32;
+        fill[o as usize] += 1;
+    }
+    drop(owner);
     let mut line = String::new();
-    for k in 0..ni as u16 {
-        let mine = || owner.iter().enumerate().filter(move |(_, &o)| o == k);
-        w.write_all(format!("2 {} 0 {}\n", k + 1, mine().count()).as_bytes())?;
-        for (v, _) in mine() {
+    for k in 0..ni {
+        let mine = &grouped[start[k]..start[k + 1]];
+        w.write_all(format!("2 {} 0 {}\n", k + 1, mine.len()).as_bytes())?;
+        for &v in mine {
             line.clear();
             let _ = writeln!(line, "{}", v + 1);
             w.write_all(line.as_bytes())?;
         }
-        for (v, _) in mine() {
-            let p = mesh.points[v];
+        for &v in mine {
+            let p = mesh.points[v as usize];
             line.clear();
             let _ = writeln!(line, "{:e} {:e} {:e}", p[0], p[1], p[2]);
             w.write_all(line.as_bytes())?;

@@ -163,6 +163,10 @@ fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// A triangle of a tetrahedron with the labels on its two sides and a tetrahedron vertex on
+/// each side (lattice coordinates): (triangle, label, its vertex, other label, its vertex).
+type Piece = ([[i64; 3]; 3], i32, [i64; 3], i32, [i64; 3]);
+
 /// The interface surfaces of the labels of a `dims` grid (x fastest). `keep(a, b)` says
 /// which interfaces (a < b, [`EXTERIOR`] = -1) are kept. `origin`, `spacing`: the grid's.
 pub fn interfaces(
@@ -228,9 +232,7 @@ pub fn interfaces(
                     if distinct.len() == 1 {
                         continue;
                     }
-                    // (triangle, label it points out of, point on that side, label it
-                    // points into, point on that side)
-                    let mut out: Vec<([[i64; 3]; 3], i32, [i64; 3], i32, [i64; 3])> = Vec::new();
+                    let mut out: Vec<Piece> = Vec::new();
                     let m = |i: usize, j: usize| avg([p[i], p[j]]);
                     if distinct.len() == 2 {
                         let hi = distinct[1];
