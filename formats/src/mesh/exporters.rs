@@ -123,7 +123,8 @@ fn phases_option() -> ExportOption {
     ExportOption {
         name: "phases",
         doc: "phase images: the phases meshed, `all` or a list of phase names and/or labels \
-              (e.g. [sand, binder]); one hexahedron per voxel of a selected phase",
+              (e.g. [sand, binder]); one hexahedron per voxel of a selected phase (`mesh: \
+              surface`: every interface with a selected phase on one side)",
         default: json!("all"),
     }
 }
