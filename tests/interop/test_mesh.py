@@ -57,6 +57,13 @@ stages:
   - id: beads
     use: import.packing
     with: { path: spheres.csv, unit: um, box: [100 um, 100 um, 100 um] }
+  - id: ball
+    use: import.raw
+    with: { path: ball.raw, dims: [32, 32, 32], dtype: u8, spacing: [1 um, 1 um, 1 um],
+            origin: [0.5 mm, 0 mm, 0 mm] }
+  - id: lam
+    use: import.raw
+    with: { path: lam.raw, dims: [7, 5, 10], dtype: u8, spacing: [2 um, 3 um, 5 um] }
 export:
   - { from: scan.image, to: out/all.vtu }
   - { from: scan.image, to: out/sel.vtu, with: { phases: [phase1, phase2] } }
@@ -76,9 +83,29 @@ export:
   - { from: beads.packing, to: out/beads.vtu }
   - { from: beads.packing, to: out/beads.vtk }
   - { from: beads.packing, to: out/beads.xdmf }
+  - { from: ball.image, to: out/ball.vtu, with: { mesh: surface } }
+  - { from: ball.image, to: out/ball.msh, with: { mesh: surface } }
+  - { from: ball.image, to: out/ball_smooth.vtu, with: { mesh: surface, smooth: 10 } }
+  - { from: ball.image, to: out/ball_dec.vtu, with: { mesh: surface, smooth: 10, decimate: 0.25 } }
+  - { from: ball.image, to: out/ball_dec.msh, with: { mesh: surface, smooth: 10, decimate: 0.25 } }
+  - { from: scan.image, to: out/surf.vtu, with: { mesh: surface, encoding: binary, compression: 6 } }
+  - { from: scan.image, to: out/surf.msh, with: { mesh: surface } }
+  - { from: lam.image, to: out/lam.vtu, with: { mesh: surface, encoding: ascii } }
+  - { from: lam.image, to: out/lam_binder.msh, with: { mesh: surface, phases: [phase2] } }
 """
 
 VALUES = (X * 100.0 + Y * 10.0 + Z + 0.25).astype(np.float64)
+# A ball of label 1, radius 12 voxels (1 um), centred in a 32^3 box: voxel in when its
+# centre is.
+BALL_N, BALL_R = 32, 12.0
+_c = np.arange(BALL_N) + 0.5 - BALL_N / 2
+BALL = ((_c[:, None, None] ** 2 + _c[None, :, None] ** 2 + _c[None, None, :] ** 2) < BALL_R**2).astype(
+    np.uint8
+)
+# A laminate along z (7x5x10, spacing 2, 3, 5 um): 0 below z = 3, 1 up to z = 7, 2 above.
+LAM = np.zeros((10, 5, 7), np.uint8)
+LAM[3:7] = 1
+LAM[7:] = 2
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +113,8 @@ def out(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("mesh")
     LABELS.tofile(cwd / "labels.raw")
     VALUES.astype("<f8").tofile(cwd / "values.raw")
+    BALL.tofile(cwd / "ball.raw")
+    LAM.tofile(cwd / "lam.raw")
     with open(cwd / "spheres.csv", "w") as f:
         f.write("x,y,z,r\n")
         for s in SPHERES:
@@ -282,3 +311,150 @@ def test_gmsh_file_in_meshio_and_gmsh(out):
         assert len(tags) == (NX + 1) * (NY + 1) * (NZ + 1)
     finally:
         gmsh.finalize()
+
+
+# --- interface surfaces (`mesh: surface`) ---------------------------------------------------
+
+
+def surface_of(path):
+    """meshio triangles of a surface .vtu: points, triangles, interface ids, (a, b) per
+    triangle, and the interface table {name: (id, a, b)}."""
+    m = meshio.read(path)
+    assert [c.type for c in m.cells] == ["triangle"]
+    tri = m.cells[0].data
+    cd = {k: np.ravel(v[0]) for k, v in m.cell_data.items()}
+    table = {k[len("interface."):]: tuple(int(x) for x in np.ravel(v)) for k, v in m.field_data.items()
+             if k.startswith("interface.")}
+    return m.points, tri, cd["interface"], np.stack([cd["phase_a"], cd["phase_b"]], 1), table
+
+
+def area_volume(points, tri):
+    a, b, c = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+    return area, vol
+
+
+def directed_edges(tri):
+    e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
+    return e
+
+
+def test_surface_of_a_ball_in_meshio_and_pyvista(out):
+    """The ball's pore|phase1 interface: enclosed volume within 4 pi r^2 h / 8 of 4/3 pi r^3
+    (the surface's mean offset from the sphere is below h/8), area 20-32 % above 4 pi r^2
+    (marching tetrahedra's bias on binary voxels); closed: every directed edge once and its
+    reverse once, Euler characteristic 2. Smoothed (10 Taubin iterations): volume within
+    0.5 %, area within 8 %."""
+    points, tri, iface, pairs, table = surface_of(out / "ball.vtu")
+    assert table == {"exterior|pore": (1, -1, 0), "pore|phase1": (2, 0, 1)}
+    for name, (k, a, b) in table.items():
+        assert ((pairs[iface == k]) == [a, b]).all()
+    sph = tri[iface == 2]
+    h, r = 1e-6, BALL_R * 1e-6
+    area, vol = area_volume(points - [0.5e-3, 0, 0], sph)
+    assert abs(vol - 4 / 3 * np.pi * r**3) <= 4 * np.pi * r**2 * h / 8
+    assert 0.20 <= area / (4 * np.pi * r**2) - 1 <= 0.32
+    e = directed_edges(sph)
+    fwd = {tuple(x) for x in e}
+    assert len(fwd) == len(e) and {(b, a) for a, b in fwd} == fwd
+    nv = len(np.unique(sph))
+    assert nv - len(e) // 2 + len(sph) == 2
+    # Points welded: no two equal.
+    assert len(np.unique(points, axis=0)) == len(points)
+    # pyvista (VTK 9) reads the same triangles.
+    g = pv.read(out / "ball.vtu")
+    assert g.n_cells == len(tri) and (g.celltypes == 5).all()
+    assert np.array_equal(g.cell_data["interface"], iface)
+    p2, t2, i2, _, _ = surface_of(out / "ball_smooth.vtu")
+    a2, v2 = area_volume(p2 - [0.5e-3, 0, 0], t2[i2 == 2])
+    assert abs(v2 / vol - 1) < 5e-3 and abs(a2 / (4 * np.pi * r**2) - 1) < 0.08
+
+
+@pytest.mark.parametrize("name", ["ball", "surf", "ball_dec"])
+def test_surface_msh_matches_the_vtu_in_meshio_and_gmsh(out, name):
+    """The .msh holds the .vtu's triangles: per physical group (= interface id, named
+    `<a>|<b>`) the same count; the element data phase_a/phase_b equal the .vtu's."""
+    points, tri, iface, pairs, table = surface_of(out / f"{name}.vtu")
+    m = meshio.read(out / f"{name}.msh")
+    assert {k: list(v) for k, v in m.field_data.items()} == {n: [k, 2] for n, (k, _, _) in table.items()}
+    assert all(c.type == "triangle" for c in m.cells)
+    ids = np.concatenate(m.cell_data["gmsh:physical"])
+    assert np.array_equal(ids, iface)
+    assert np.array_equal(np.concatenate(m.cell_data["phase_a"]).astype(int), pairs[:, 0])
+    assert np.array_equal(np.concatenate(m.cell_data["phase_b"]).astype(int), pairs[:, 1])
+    assert len(m.points) == len(points)
+    try:
+        import gmsh
+    except ImportError as e:  # pragma: no cover
+        pytest.skip(f"the gmsh module is not installed from PyPI here: {e}")
+    gmsh.initialize(["-v", "0"])
+    try:
+        gmsh.open(str(out / f"{name}.msh"))
+        groups = gmsh.model.getPhysicalGroups(2)
+        assert sorted(groups) == [(2, k) for k, _, _ in sorted(table.values())]
+        names = {k: n for n, (k, _, _) in table.items()}
+        for dim, tag in groups:
+            assert gmsh.model.getPhysicalName(dim, tag) == names[tag]
+            (entity,) = gmsh.model.getEntitiesForPhysicalGroup(dim, tag)
+            types, elems, _ = gmsh.model.mesh.getElements(dim, entity)
+            assert list(types) == [2] and len(elems[0]) == int((iface == tag).sum())
+    finally:
+        gmsh.finalize()
+
+
+def test_three_phase_surface_closes_around_every_phase(out):
+    """The 9x7x5 three-phase image: all six pairs (with the exterior) present, and each
+    phase's boundary, oriented out of it (the normal points out of b into a), is closed:
+    every directed edge matched by its reverse."""
+    points, tri, iface, pairs, table = surface_of(out / "surf.vtu")
+    assert sorted(table) == sorted(["exterior|pore", "exterior|phase1", "exterior|phase2",
+                                    "pore|phase1", "pore|phase2", "phase1|phase2"])
+    for p in [0, 1, 2]:
+        t = np.concatenate([tri[pairs[:, 1] == p], tri[pairs[:, 0] == p][:, [0, 2, 1]]])
+        e = directed_edges(t)
+        fwd, cnt = np.unique(e, axis=0, return_counts=True)
+        rev, cnt_r = np.unique(e[:, ::-1], axis=0, return_counts=True)
+        assert np.array_equal(fwd, rev) and np.array_equal(cnt, cnt_r)
+
+
+def test_laminate_interfaces_on_their_planes(out):
+    """The laminate: away from the side walls, pore|phase1 is 8 (nx-1)(ny-1) triangles on
+    z = 3 dz and phase1|phase2 as many on z = 7 dz, normals -z (out of the higher label into
+    the lower); `phases: [phase2]` keeps the interfaces touching phase2 only."""
+    points, tri, iface, pairs, table = surface_of(out / "lam.vtu")
+    sp = np.array([2e-6, 3e-6, 5e-6])
+    for name, zk in [("pore|phase1", 3), ("phase1|phase2", 7)]:
+        k, a, b = table[name]
+        t = tri[iface == k]
+        c = points[t]
+        u = c[:, :, :2] / sp[:2]
+        inner = ((u > 0.5 - 1e-9) & (u < np.array([7, 5]) - 0.5 + 1e-9)).all(axis=(1, 2))
+        assert inner.sum() == 8 * 6 * 4
+        assert np.allclose(c[inner][:, :, 2], zk * sp[2], rtol=0, atol=1e-15)
+        n = np.cross(c[inner][:, 1] - c[inner][:, 0], c[inner][:, 2] - c[inner][:, 0])
+        assert (n[:, 2] < 0).all()
+        assert np.isclose(0.5 * np.abs(n[:, 2]).sum(), 6 * 4 * sp[0] * sp[1], rtol=1e-9)
+    assert "pore|phase2" not in table
+    m = meshio.read(out / "lam_binder.msh")
+    assert sorted(m.field_data) == ["exterior|phase2", "phase1|phase2"]
+
+
+def test_decimated_ball_is_a_closed_quarter(out):
+    """`decimate: 0.25` after `smooth: 10`: the sphere keeps a quarter of the smoothed
+    sphere's triangles (+1 %), stays closed (each directed edge once, its reverse once, Euler
+    characteristic 2) and welded (every point used, none repeated), its volume within 1 %
+    of the smoothed one."""
+    p1, t1, i1, _, _ = surface_of(out / "ball_smooth.vtu")
+    p2, t2, i2, _, table = surface_of(out / "ball_dec.vtu")
+    assert table["pore|phase1"][0] == 2
+    s1, s2 = t1[i1 == 2], t2[i2 == 2]
+    assert len(s2) <= 0.2525 * len(s1)
+    e = directed_edges(s2)
+    fwd = {tuple(x) for x in e}
+    assert len(fwd) == len(e) and {(b, a) for a, b in fwd} == fwd
+    assert len(np.unique(s2)) - len(e) // 2 + len(s2) == 2
+    assert len(np.unique(t2)) == len(p2) and len(np.unique(p2, axis=0)) == len(p2)
+    _, v1 = area_volume(p1 - [0.5e-3, 0, 0], s1)
+    _, v2 = area_volume(p2 - [0.5e-3, 0, 0], s2)
+    assert abs(v2 / v1 - 1) < 0.01

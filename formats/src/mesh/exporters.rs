@@ -3,6 +3,7 @@
 //! an atomic temporary file.
 
 use super::legacy_vtk::write_legacy_vtk;
+use super::surface::{self, InterfaceMesh, EXTERIOR};
 use super::vtu::{write_vtu, VtuEncoding};
 use super::{abaqus, emit, gmsh, xdmf, CellKind, Column, Dtype, Mesh, VoxelHexMesh};
 use crate::h5util::{self, provenance_attrs, H5Result};
@@ -122,7 +123,8 @@ fn phases_option() -> ExportOption {
     ExportOption {
         name: "phases",
         doc: "phase images: the phases meshed, `all` or a list of phase names and/or labels \
-              (e.g. [sand, binder]); one hexahedron per voxel of a selected phase",
+              (e.g. [sand, binder]); one hexahedron per voxel of a selected phase (`mesh: \
+              surface`: every interface with a selected phase on one side)",
         default: json!("all"),
     }
 }
@@ -366,6 +368,228 @@ pub fn with_mesh<R>(
 }
 
 // ---------------------------------------------------------------------------------------
+// interface surfaces (`mesh: surface`)
+
+/// The `mesh` option of `vtu` and `gmsh`: voxel hexahedra (or a packing's vertices, a
+/// graph's lines) or the interface surfaces of a phase image.
+fn surface_mode(o: &ExportOptions) -> Result<bool, (String, String)> {
+    match o.get("mesh").and_then(Value::as_str) {
+        None | Some("hexahedra") => Ok(false),
+        Some("surface") => Ok(true),
+        Some(_) => Err((
+            "mesh".into(),
+            format!("{} is not one of: hexahedra, surface", opt(o, "mesh")),
+        )),
+    }
+}
+
+fn mesh_option(what: &'static str) -> ExportOption {
+    ExportOption {
+        name: "mesh",
+        doc: what,
+        default: json!("hexahedra"),
+    }
+}
+
+fn smooth_option() -> ExportOption {
+    ExportOption {
+        name: "smooth",
+        doc: "`mesh: surface`: Taubin lambda|mu smoothing iterations (Taubin 1995; lambda = \
+              0.6307, mu = -0.6732), 0 = none; junction lines and the image box stay fixed",
+        default: json!(0),
+    }
+}
+
+fn decimate_option() -> ExportOption {
+    ExportOption {
+        name: "decimate",
+        doc: "`mesh: surface`: fraction of each interface's triangles to keep, 0 < f <= 1 (1 = \
+              none), by meshoptimizer's edge collapses (the `meshopt` crate) moving the \
+              surface by at most half a voxel; junction lines stay",
+        default: json!(1.0),
+    }
+}
+
+fn decimate_fraction(o: &ExportOptions) -> Result<f64, (String, String)> {
+    match o.get("decimate") {
+        None => Ok(1.0),
+        Some(v) => v.as_f64().filter(|&f| f > 0.0 && f <= 1.0).ok_or_else(|| {
+            (
+                "decimate".into(),
+                format!("{v}: give the fraction of triangles to keep, 0 < f <= 1 (e.g. 0.25)"),
+            )
+        }),
+    }
+}
+
+/// Most smoothing iterations accepted.
+const MAX_SMOOTH: u64 = 1000;
+
+fn smooth_iterations(o: &ExportOptions) -> Result<u32, (String, String)> {
+    match o.get("smooth") {
+        None => Ok(0),
+        Some(v) => v
+            .as_u64()
+            .filter(|&n| n <= MAX_SMOOTH)
+            .map(|n| n as u32)
+            .ok_or_else(|| {
+                (
+                    "smooth".into(),
+                    format!("{v}: give a number of iterations 0..={MAX_SMOOTH} (10 is typical)"),
+                )
+            }),
+    }
+}
+
+/// Checks the surface options; `smooth` only with `mesh: surface`.
+fn check_surface_options(o: &ExportOptions) -> Result<bool, (String, String)> {
+    let surface = surface_mode(o)?;
+    let smooth = smooth_iterations(o)?;
+    if !surface && smooth > 0 {
+        return Err((
+            "smooth".into(),
+            "smoothing applies to `mesh: surface`; voxel hexahedra are not smoothed".into(),
+        ));
+    }
+    if !surface && decimate_fraction(o)? < 1.0 {
+        return Err((
+            "decimate".into(),
+            "decimation applies to `mesh: surface`; voxel hexahedra are not decimated".into(),
+        ));
+    }
+    Ok(surface)
+}
+
+/// Triangles preflight assumes per voxel of an image (measured by `mesh_bench`: 0.47 for a
+/// ball filling half of a 140^3 box, 3.4 for balls of radius 6 voxels with 2-voxel binder
+/// shells; independent random labels, no microstructure, reach 26.5 and exceed it).
+pub const SURFACE_TRIANGLES_PER_VOXEL: f64 = 4.0;
+
+/// Memory of a surface export of a `dims` image [bytes].
+pub fn surface_memory(dims: [usize; 3], smooth: bool, decimate: bool) -> u64 {
+    let voxels = (dims[0] * dims[1] * dims[2]) as f64;
+    let tris = SURFACE_TRIANGLES_PER_VOXEL * voxels;
+    // A closed triangulation has about half as many points as triangles.
+    let points = 0.5 * tris;
+    let per_point = surface::BYTES_PER_POINT
+        + if smooth {
+            surface::SMOOTH_BYTES_PER_POINT
+        } else {
+            0
+        }
+        + if decimate {
+            surface::DECIMATE_BYTES_PER_POINT
+        } else {
+            0
+        };
+    // The grouping pass holds the triangles twice.
+    (tris * (2 * surface::BYTES_PER_TRIANGLE) as f64 + points * per_point as f64) as u64
+}
+
+fn surface_preflight(meta: &ArtifactMeta, o: &ExportOptions) -> Result<u64, (String, String)> {
+    if meta.kind != ArtifactKind::PhaseImage {
+        return Err((
+            "mesh".into(),
+            format!(
+                "`surface` meshes the interfaces of phase images, not a {}",
+                meta.kind
+            ),
+        ));
+    }
+    mesh_preflight(meta, o, 0)?;
+    let smooth = smooth_iterations(o)? > 0;
+    let decimate = decimate_fraction(o)? < 1.0;
+    Ok(STREAM_BUFFERS
+        + meta
+            .grid
+            .as_ref()
+            .map_or(0, |g| surface_memory(g.dims, smooth, decimate)))
+}
+
+/// The name of a label in interface names: the phase's, `exterior` for the outside.
+fn label_name(img: &PhaseImage, l: i32) -> String {
+    if l == EXTERIOR {
+        return "exterior".into();
+    }
+    img.phases
+        .iter()
+        .find(|p| p.id as i32 == l)
+        .map(|p| p.name.clone())
+        .unwrap_or_else(|| format!("phase{l}"))
+}
+
+/// The interface surfaces of the selected phases of an image (every interface with a
+/// selected phase on either side), smoothed as asked, and the interface names `a|b`.
+pub fn image_surface(
+    a: &Artifact,
+    o: &ExportOptions,
+) -> Result<(InterfaceMesh, Vec<String>), String> {
+    let Artifact::PhaseImage(img) = a else {
+        return Err(format!(
+            "option `mesh`: `surface` meshes the interfaces of phase images, not a {}",
+            a.kind()
+        ));
+    };
+    let (_, mask) = image_phases(img, o)?;
+    let g = &img.grid;
+    let mut m = surface::interfaces(g.dims, g.origin, g.spacing, &img.labels, |lo, hi| {
+        (lo >= 0 && mask[lo as usize]) || mask[hi as usize]
+    })?;
+    let iterations = smooth_iterations(o).map_err(|(k, e)| format!("option `{k}`: {e}"))?;
+    surface::taubin_smooth(&mut m, iterations);
+    let fraction = decimate_fraction(o).map_err(|(k, e)| format!("option `{k}`: {e}"))?;
+    surface::decimate(&mut m, fraction, g.spacing);
+    let names = m
+        .pairs
+        .iter()
+        .map(|[lo, hi]| format!("{}|{}", label_name(img, *lo), label_name(img, *hi)))
+        .collect();
+    Ok((m, names))
+}
+
+/// The interface surfaces as a triangle [`Mesh`]: cell data `interface` (id = index in the
+/// table + 1), `phase_a`, `phase_b` (Int32 labels, a < b, -1 = exterior); field data
+/// `interface.<a>|<b>` = [id, a, b] and `phase.<name>` = label.
+fn surface_mesh<'m>(m: &'m InterfaceMesh, names: &[String], img: &PhaseImage) -> Mesh<'m> {
+    let np = m.points.len();
+    let nt = m.triangles.len();
+    let mut mesh = Mesh {
+        kind: CellKind::Triangle,
+        point_count: np,
+        cell_count: nt,
+        points: Column::generated::<f64>("Points", 3, np, move |sink| {
+            emit(sink, m.points.iter().flatten().copied())
+        }),
+        connectivity: Column::generated::<i64>("connectivity", 1, 3 * nt, move |sink| {
+            emit(sink, m.triangles.iter().flatten().map(|&v| i64::from(v)))
+        }),
+        point_data: Vec::new(),
+        cell_data: vec![Column::generated::<i32>("interface", 1, nt, move |sink| {
+            emit(sink, m.interface.iter().map(|&k| i32::from(k) + 1))
+        })],
+        field_data: Vec::new(),
+    };
+    for (side, name) in [(0, "phase_a"), (1, "phase_b")] {
+        mesh.cell_data
+            .push(Column::generated::<i32>(name, 1, nt, move |sink| {
+                emit(sink, m.interface.iter().map(|&k| m.pairs[k as usize][side]))
+            }));
+    }
+    for (k, (pair, name)) in m.pairs.iter().zip(names).enumerate() {
+        mesh.field_data.push(Column::owned(
+            &format!("interface.{name}"),
+            3,
+            vec![k as i32 + 1, pair[0], pair[1]],
+        ));
+    }
+    for p in &img.phases {
+        mesh.field_data
+            .push(Column::owned(&format!("phase.{}", p.name), 1, vec![p.id]));
+    }
+    mesh
+}
+
+// ---------------------------------------------------------------------------------------
 // vtu
 
 fn vtu_encoding(o: &ExportOptions) -> Result<VtuEncoding, (String, String)> {
@@ -421,11 +645,24 @@ impl Exporter for VtuExporter {
          `phase.<name>` = label and `periodic`; a field: every voxel, cell data = the field's \
          components; a packing: one vertex per sphere with point data radius, body_id, layer, \
          frozen, clump_index, body attributes; a contact graph: lines with gap, bonded and bond \
-         attributes. Provenance in an XML comment (meshio reads no string arrays)."
+         attributes. `mesh: surface` (phase images): the interfaces between phases and with the \
+         outside of the image as welded triangles (marching tetrahedra over the voxel centres, \
+         as `stl`, extended to many phases), cell data `interface` (id), `phase_a` < \
+         `phase_b` (the labels it separates, -1 = exterior; the normal points out of b into \
+         a), field data `interface.<a>|<b>` = [id, a, b]; `smooth: N` Taubin-smooths it, `decimate: f` keeps \
+         about a fraction f of its triangles (meshoptimizer). \
+         Provenance in an XML comment (meshio reads no string arrays)."
     }
     fn options(&self) -> Vec<ExportOption> {
         vec![
             phases_option(),
+            mesh_option(
+                "`hexahedra`: one hexahedron per voxel of the selected phases (a packing's \
+                 vertices, a graph's lines); `surface`: the triangles of every interface with \
+                 a selected phase on one side (phase images)",
+            ),
+            smooth_option(),
+            decimate_option(),
             ExportOption {
                 name: "encoding",
                 doc: "`appended` (raw binary after the XML, smallest and fastest), `binary` \
@@ -442,11 +679,15 @@ impl Exporter for VtuExporter {
     }
     fn check_options(&self, o: &ExportOptions) -> Result<(), (String, String)> {
         selection(o)?;
+        check_surface_options(o)?;
         vtu_encoding(o)?;
         zlib_level(o)?;
         Ok(())
     }
     fn preflight(&self, meta: &ArtifactMeta, o: &ExportOptions) -> Result<u64, (String, String)> {
+        if check_surface_options(o)? {
+            return surface_preflight(meta, o);
+        }
         mesh_preflight(meta, o, 0)
     }
     fn write(
@@ -460,6 +701,14 @@ impl Exporter for VtuExporter {
         let enc = vtu_encoding(o).expect("checked");
         let level = zlib_level(o).expect("checked");
         let comment = provenance_text(prov);
+        if surface_mode(o).expect("checked") {
+            let (m, names) = image_surface(a, o)?;
+            let Artifact::PhaseImage(img) = a else {
+                unreachable!("image_surface holds images only")
+            };
+            let mesh = surface_mesh(&m, &names, img);
+            return atomic_write(path, |tmp| write_vtu(tmp, &mesh, enc, level, &comment));
+        }
         with_mesh(a, o, |mesh| {
             atomic_write(path, |tmp| write_vtu(tmp, mesh, enc, level, &comment))
         })
@@ -790,15 +1039,32 @@ impl Exporter for GmshExporter {
     fn doc(&self) -> &'static str {
         "Gmsh MSH 4.1 ASCII of a phase image: 8-node hexahedra, one per voxel of the selected \
          phases (lengths in m), one volume entity and one named physical group per phase \
-         (tag = label + 1); read by Gmsh, meshio and the FE codes that import .msh"
+         (tag = label + 1); read by Gmsh, meshio and the FE codes that import .msh. `mesh: \
+         surface`: the interfaces between phases and with the outside of the image as welded \
+         3-node triangles, one surface entity and one physical group (dimension 2) per \
+         interface named `<a>|<b>` (tag = the `vtu` interface id), element data views \
+         `phase_a` and `phase_b`; `smooth: N` Taubin-smooths it, `decimate: f` keeps about a \
+         fraction f of its triangles (meshoptimizer)"
     }
     fn options(&self) -> Vec<ExportOption> {
-        vec![phases_option()]
+        vec![
+            phases_option(),
+            mesh_option(
+                "`hexahedra`: one hexahedron per voxel of the selected phases; `surface`: the \
+                 triangles of every interface with a selected phase on one side",
+            ),
+            smooth_option(),
+            decimate_option(),
+        ]
     }
     fn check_options(&self, o: &ExportOptions) -> Result<(), (String, String)> {
-        selection(o).map(|_| ())
+        selection(o)?;
+        check_surface_options(o).map(|_| ())
     }
     fn preflight(&self, meta: &ArtifactMeta, o: &ExportOptions) -> Result<u64, (String, String)> {
+        if check_surface_options(o)? {
+            return surface_preflight(meta, o);
+        }
         mesh_preflight(meta, o, 1)
     }
     fn write(
@@ -808,7 +1074,14 @@ impl Exporter for GmshExporter {
         prov: &Provenance,
         o: &ExportOptions,
     ) -> Result<(), String> {
+        keyed(self.check_options(o))?;
         let comment = provenance_text(prov);
+        if surface_mode(o).expect("checked") {
+            let (m, names) = image_surface(a, o)?;
+            return atomic_write(path, |tmp| {
+                gmsh::write_surface_msh(tmp, &m, &names, &comment)
+            });
+        }
         voxel_mesh_write(a, o, |vm, phases, _| {
             atomic_write(path, |tmp| gmsh::write_msh(tmp, vm, phases, &comment))
         })

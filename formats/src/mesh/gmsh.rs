@@ -139,3 +139,122 @@ pub fn write_msh(
     w.write_all(b"$EndElements\n")?;
     w.flush()
 }
+
+/// Writes interface surfaces (see [`super::surface`]) at `path`: one surface entity and one
+/// named physical group (dimension 2) per interface, `names[k]` = `"<a>|<b>"`, tag = k + 1
+/// (the `interface` id of the `.vtu`); 3-node triangles (element type 2) whose normals
+/// point out of phase b into phase a; `$ElementData` views `phase_a` and `phase_b` with the
+/// labels (-1 = exterior). A node shared by several interfaces is listed once, in the block
+/// of the first interface that touches it.
+pub fn write_surface_msh(
+    path: &Path,
+    mesh: &super::surface::InterfaceMesh,
+    names: &[String],
+    comment: &str,
+) -> io::Result<()> {
+    use std::fmt::Write as _;
+    let mut w = BufWriter::with_capacity(1 << 20, File::create(path)?);
+    let np = mesh.points.len();
+    let ni = mesh.pairs.len();
+    let mut owner = vec![u16::MAX; np];
+    for (t, &k) in mesh.triangles.iter().zip(&mesh.interface) {
+        for &v in t {
+            owner[v as usize] = owner[v as usize].min(k);
+        }
+    }
+    let mut s = String::from("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Comments\n");
+    for line in comment.lines() {
+        s.push_str(line);
+        s.push('\n');
+    }
+    s.push_str("$EndComments\n$PhysicalNames\n");
+    let _ = writeln!(s, "{ni}");
+    for (k, name) in names.iter().enumerate() {
+        let _ = writeln!(s, "2 {} \"{}\"", k + 1, name.replace(['"', '\n'], "'"));
+    }
+    s.push_str("$EndPhysicalNames\n$Entities\n");
+    let _ = writeln!(s, "0 0 {ni} 0");
+    for k in 0..ni {
+        let mut lo = [f64::INFINITY; 3];
+        let mut hi = [f64::NEG_INFINITY; 3];
+        for t in mesh.interface_triangles(k) {
+            for &v in t {
+                let p = mesh.points[v as usize];
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+            }
+        }
+        let _ = writeln!(
+            s,
+            "{} {:e} {:e} {:e} {:e} {:e} {:e} 1 {} 0",
+            k + 1,
+            lo[0],
+            lo[1],
+            lo[2],
+            hi[0],
+            hi[1],
+            hi[2],
+            k + 1
+        );
+    }
+    s.push_str("$EndEntities\n$Nodes\n");
+    let _ = writeln!(s, "{ni} {np} {} {np}", np.min(1));
+    w.write_all(s.as_bytes())?;
+    // Points grouped by owning interface (a counting sort), in point order within each.
+    let mut start = vec![0usize; ni + 1];
+    for &o in &owner {
+        start[o as usize + 1] += 1;
+    }
+    for k in 0..ni {
+        start[k + 1] += start[k];
+    }
+    let mut grouped = vec![0u32; np];
+    let mut fill = start.clone();
+    for (v, &o) in owner.iter().enumerate() {
+        grouped[fill[o as usize]] = v as u32;
+        fill[o as usize] += 1;
+    }
+    drop(owner);
+    let mut line = String::new();
+    for k in 0..ni {
+        let mine = &grouped[start[k]..start[k + 1]];
+        w.write_all(format!("2 {} 0 {}\n", k + 1, mine.len()).as_bytes())?;
+        for &v in mine {
+            line.clear();
+            let _ = writeln!(line, "{}", v + 1);
+            w.write_all(line.as_bytes())?;
+        }
+        for &v in mine {
+            let p = mesh.points[v as usize];
+            line.clear();
+            let _ = writeln!(line, "{:e} {:e} {:e}", p[0], p[1], p[2]);
+            w.write_all(line.as_bytes())?;
+        }
+    }
+    let ne = mesh.triangles.len();
+    w.write_all(format!("$EndNodes\n$Elements\n{ni} {ne} {} {ne}\n", ne.min(1)).as_bytes())?;
+    let mut element = 0usize;
+    for k in 0..ni {
+        let tris = mesh.interface_triangles(k);
+        w.write_all(format!("2 {} 2 {}\n", k + 1, tris.len()).as_bytes())?;
+        for t in tris {
+            element += 1;
+            line.clear();
+            let _ = writeln!(line, "{element} {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
+            w.write_all(line.as_bytes())?;
+        }
+    }
+    w.write_all(b"$EndElements\n")?;
+    for (side, name) in [(0, "phase_a"), (1, "phase_b")] {
+        w.write_all(format!("$ElementData\n1\n\"{name}\"\n1\n0\n3\n0\n1\n{ne}\n").as_bytes())?;
+        for (e, &k) in mesh.interface.iter().enumerate() {
+            line.clear();
+            let _ = writeln!(line, "{} {}", e + 1, mesh.pairs[k as usize][side]);
+            w.write_all(line.as_bytes())?;
+        }
+        w.write_all(b"$EndElementData\n")?;
+    }
+    w.flush()
+}

@@ -5,19 +5,21 @@
 //! The kernels here know no framework type: [`VoxelHexMesh`] numbers the corner points of
 //! the selected voxels of a label array, [`Mesh`] describes a single-cell-type mesh whose
 //! arrays ([`Column`]) are produced chunk by chunk, so writers stream them to disk and never
-//! hold a copy of the whole mesh. The writers are `vtu`, `legacy_vtk`, `xdmf`, `abaqus` and
+//! hold a copy of the whole mesh. [`surface`] builds the conforming interface surfaces
+//! of a phase image (`mesh: surface`). The writers are `vtu`, `legacy_vtk`, `xdmf`, `abaqus` and
 //! `gmsh`; `exporters` binds them to artifacts and export options.
 
 pub mod abaqus;
 mod exporters;
 pub mod gmsh;
 pub mod legacy_vtk;
+pub mod surface;
 pub mod vtu;
 pub mod xdmf;
 
 pub use exporters::{
-    with_mesh, AbaqusExporter, GmshExporter, LegacyVtkExporter, PhaseSelection, VtuExporter,
-    XdmfExporter,
+    image_surface, surface_memory, with_mesh, AbaqusExporter, GmshExporter, LegacyVtkExporter,
+    PhaseSelection, VtuExporter, XdmfExporter, SURFACE_TRIANGLES_PER_VOXEL,
 };
 
 use std::io;
