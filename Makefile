@@ -7,7 +7,7 @@ SHELL := /bin/bash
 CARGO ?= cargo
 VENV ?= .venv
 PYTHON ?= python3
-APT_PACKAGES := libhdf5-dev libnetcdf-dev pkg-config python3-venv chromium fonts-dejavu-core
+APT_PACKAGES := libhdf5-dev libnetcdf-dev pkg-config python3-venv chromium fonts-dejavu-core g++
 PIPE := $(CURDIR)/target/release/pipe
 DEMO_PIPELINES := pipelines/sandcore.yaml
 MORE_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clumps.yaml pipelines/mcm.yaml \
@@ -18,7 +18,8 @@ MORE_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clum
 
 all: build
 
-# System libraries for the HDF5 and NetCDF writers; installed only when missing.
+# System libraries for the HDF5 and NetCDF writers (and g++ for the meshoptimizer sources the
+# `decimate` option of surface meshes compiles); installed only when missing.
 sysdeps:
 	@missing=""; \
 	for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
