@@ -350,7 +350,10 @@ fn run_report_in_a_browser() {
     assert!(html.contains("<span class=\"symmetry-error\">0</span>"));
     assert!(html.contains("100 rows; the first and last 20 shown"));
     // Issue 36: no remark about a paper on a run that declares no reference.
-    assert!(!html.contains("the paper reports"), "a paper's numbers on a run's page");
+    assert!(
+        !html.contains("the paper reports"),
+        "a paper's numbers on a run's page"
+    );
     // Issue 36: warnings are shown at the top and per step, and the status says so.
     assert!(html.contains("id=\"status\">completed with 1 warning</span>"));
     assert!(html.contains("<span class=\"step\">pack</span>: radii: KS test"));

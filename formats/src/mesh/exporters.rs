@@ -133,6 +133,32 @@ fn opt<'o>(o: &'o ExportOptions, k: &str) -> &'o Value {
     o.get(k).unwrap_or(&Value::Null)
 }
 
+/// A text option with a fixed set of values: the value of the one given (`absent` when the
+/// option is left out), or the error naming the choices.
+fn choice<T: Copy>(
+    o: &ExportOptions,
+    key: &str,
+    choices: &[(&str, T)],
+    absent: Option<T>,
+) -> Result<T, (String, String)> {
+    let v = opt(o, key);
+    if v.is_null() {
+        if let Some(t) = absent {
+            return Ok(t);
+        }
+    }
+    v.as_str()
+        .and_then(|s| choices.iter().find(|(name, _)| *name == s))
+        .map(|(_, t)| *t)
+        .ok_or_else(|| {
+            let names: Vec<&str> = choices.iter().map(|(n, _)| *n).collect();
+            (
+                key.into(),
+                format!("{v} is not one of: {}", names.join(", ")),
+            )
+        })
+}
+
 fn selection(o: &ExportOptions) -> Result<PhaseSelection, (String, String)> {
     match o.get("phases") {
         None => Ok(PhaseSelection::All),
@@ -373,14 +399,12 @@ pub fn with_mesh<R>(
 /// The `mesh` option of `vtu` and `gmsh`: voxel hexahedra (or a packing's vertices, a
 /// graph's lines) or the interface surfaces of a phase image.
 fn surface_mode(o: &ExportOptions) -> Result<bool, (String, String)> {
-    match o.get("mesh").and_then(Value::as_str) {
-        None | Some("hexahedra") => Ok(false),
-        Some("surface") => Ok(true),
-        Some(_) => Err((
-            "mesh".into(),
-            format!("{} is not one of: hexahedra, surface", opt(o, "mesh")),
-        )),
-    }
+    choice(
+        o,
+        "mesh",
+        &[("hexahedra", false), ("surface", true)],
+        Some(false),
+    )
 }
 
 fn mesh_option(what: &'static str) -> ExportOption {
@@ -719,14 +743,7 @@ impl Exporter for VtuExporter {
 // legacy vtk
 
 fn legacy_binary(o: &ExportOptions) -> Result<bool, (String, String)> {
-    match opt(o, "encoding").as_str() {
-        Some("binary") => Ok(true),
-        Some("ascii") => Ok(false),
-        _ => Err((
-            "encoding".into(),
-            format!("{} is not one of: binary, ascii", opt(o, "encoding")),
-        )),
-    }
+    choice(o, "encoding", &[("binary", true), ("ascii", false)], None)
 }
 
 /// `vtk`: legacy VTK UNSTRUCTURED_GRID.
@@ -797,14 +814,7 @@ pub fn xdmf_heavy_path(path: &Path) -> PathBuf {
 }
 
 fn xdmf_image(o: &ExportOptions) -> Result<bool, (String, String)> {
-    match opt(o, "mesh").as_str() {
-        Some("hexahedra") => Ok(false),
-        Some("image") => Ok(true),
-        _ => Err((
-            "mesh".into(),
-            format!("{} is not one of: hexahedra, image", opt(o, "mesh")),
-        )),
-    }
+    choice(o, "mesh", &[("hexahedra", false), ("image", true)], None)
 }
 
 /// `xdmf`: XDMF 3 + HDF5.

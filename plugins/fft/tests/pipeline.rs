@@ -92,8 +92,9 @@ fn elasticity_pipeline_runs_and_exports() {
 
 /// The error of a small pipeline (RSA spheres at 10 um voxels) whose last step is `stage`
 /// with parameters `with` (a YAML flow map); panics if it runs.
-fn refusal(stage: &str, with: &str) -> String {
-    let yaml = format!(
+/// A pipeline of RSA spheres voxelized at 10 um (phase `sand`) feeding `stage` with `with`.
+fn spheres_into(stage: &str, with: &str) -> String {
+    format!(
         r#"
 name: t
 stages:
@@ -109,8 +110,11 @@ stages:
     in: {{ image: voxels.image }}
     with: {with}
 "#
-    );
-    match run_yaml(&registry(), &yaml) {
+    )
+}
+
+fn refusal(stage: &str, with: &str) -> String {
+    match run_yaml(&registry(), &spheres_into(stage, with)) {
         Ok(_) => panic!("{stage} with {with} ran; it should be refused"),
         Err(e) => e.to_string(),
     }
@@ -177,23 +181,7 @@ fn a_misspelt_phase_is_refused_at_preflight_with_a_suggestion() {
             "conductivities",
         ),
     ] {
-        let yaml = format!(
-            r#"
-name: t
-stages:
-  - id: pack
-    use: packing.rsa
-    with: {{ size: [100 um, 100 um, 100 um], radius: {{ kind: fixed, value: 20 um }}, volume_fraction: 0.2 }}
-  - id: voxels
-    use: voxelize.packing
-    in: {{ packing: pack.packing }}
-    with: {{ voxel_size: 10 um, phase_name: sand }}
-  - id: out
-    use: {stage}
-    in: {{ image: voxels.image }}
-    with: {with}
-"#
-        );
+        let yaml = spheres_into(stage, with);
         let reg = registry();
         let doc = grainpipe_core::pipeline::PipelineDoc::parse("t.yaml".as_ref(), yaml).unwrap();
         let Err(e) = grainpipe_core::engine::plan(&doc, &reg, &Default::default()) else {
