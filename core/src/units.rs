@@ -398,10 +398,12 @@ pub type LengthQ = Q<Length>;
 /// order E^2 head for the f64 overflow.
 pub const MAX_MODULUS: f64 = 1e15;
 
-/// Smallest elastic modulus the solvers accept: 1 Pa, a thousand times softer than the softest
-/// gels. Below it the value is a unit slip, and near the f64 subnormals (E = 5e-324) the
-/// derived Lame constants underflow to zero: the solid would be taken for pore.
-pub const MIN_MODULUS: f64 = 1.0;
+/// Smallest elastic modulus the solvers accept: 1e-20 Pa. Nothing solid is that soft, but
+/// scale-free studies use moduli of order 1 Pa, so the floor sits where the arithmetic
+/// fails: near the subnormals (E = 5e-324) the derived Lame constants underflow to zero and
+/// the solid is taken for pore, and single-precision stresses lose their digits below
+/// about 1e-30.
+pub const MIN_MODULUS: f64 = 1e-20;
 
 #[cfg(test)]
 mod tests {

@@ -195,8 +195,8 @@ fn plausible_modulus(key: &str, v: f64) -> Result<(), String> {
     }
     if v < MIN_MODULUS {
         return Err(format!(
-            "{key} = {v:.3e} Pa is below {MIN_MODULUS} Pa; check the unit (66.9 GPa for quartz; \
-             a void is a phase left out of `materials`)"
+            "{key} = {v:.3e} Pa is below {MIN_MODULUS:.0e} Pa; check the unit (66.9 GPa for \
+             quartz; a void is a phase left out of `materials`)"
         ));
     }
     Ok(())

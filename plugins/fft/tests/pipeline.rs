@@ -199,7 +199,8 @@ fn a_misspelt_phase_is_refused_at_preflight_with_a_suggestion() {
 
 /// Issue 35: every modulus the solver uses is guarded, not only the given ones. nu = -0.999999
 /// made G = 3.3e16 Pa (past the 1e15 guard on E) and an indefinite, non-symmetric "stiffness";
-/// E = 5e-324 underflowed to a void and was reported as "no solid voxel".
+/// E = 5e-324 underflowed to a void and was reported as "no solid voxel". (The floor is
+/// 1e-20 Pa, not 1 Pa: scale-free tests use moduli of order 1.)
 #[test]
 fn derived_and_vanishing_moduli_are_refused_at_preflight() {
     for (material, expect) in [
@@ -210,11 +211,11 @@ fn derived_and_vanishing_moduli_are_refused_at_preflight() {
         ("{ E: 66.9 GPa, nu: 0.4999999999 }", "bulk modulus K"),
         (
             "{ E: 5e-324 Pa, nu: 0.25 }",
-            "E = 4.941e-324 Pa is below 1 Pa",
+            "E = 4.941e-324 Pa is below 1e-20 Pa",
         ),
         (
-            "{ K: 1e14 Pa, G: 1e-3 Pa }",
-            "G = 1.000e-3 Pa is below 1 Pa",
+            "{ K: 1e14 Pa, G: 1e-25 Pa }",
+            "G = 1.000e-25 Pa is below 1e-20 Pa",
         ),
     ] {
         let err = refusal(
