@@ -45,7 +45,7 @@ pub struct PlanRequest {
     pub overrides: Vec<String>,
     /// `--seed`: replaces the pipeline's seed.
     pub seed: Option<u64>,
-    /// `--target`: steps to compute in addition to what the exports need.
+    /// `--target`: steps to compute with what they need; only their exports are written.
     pub targets: Vec<String>,
     /// Write nothing: the pipeline's exports are dropped, and the targets (every step when
     /// none is named) are computed.
@@ -95,7 +95,7 @@ pub fn plan_pipeline(
 
 /// Drops the exports whose step is not a target or upstream of one. Unknown target ids are
 /// left for the planner to report (with a suggestion).
-pub fn keep_exports_of(doc: &mut PipelineDoc, targets: &[String]) {
+fn keep_exports_of(doc: &mut PipelineDoc, targets: &[String]) {
     let mut needed: std::collections::HashSet<&str> = std::collections::HashSet::new();
     let mut todo: Vec<&str> = targets.iter().map(String::as_str).collect();
     while let Some(id) = todo.pop() {

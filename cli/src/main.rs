@@ -354,28 +354,21 @@ fn json_text(v: &serde_json::Value) -> String {
     )
 }
 
+/// The `pipe run`/`pipe validate` arguments as a [`grainpipe_cli::PlanRequest`]: the same
+/// loading, overrides, targets and planning as the Python package.
 fn load_and_plan(
     args: &PipelineArgs,
     registry: &mut grainpipe_core::Registry,
     loader: &mut PluginLoader,
 ) -> Result<(PipelineDoc, engine::Plan), PipelineError> {
-    let mut doc = PipelineDoc::load(&args.file)?;
-    loader.load_for(registry, &doc)?;
-    for o in &args.overrides {
-        doc.apply_override(o)?;
-    }
-    if let Some(s) = args.seed {
-        doc.seed = s;
-    }
-    if !args.targets.is_empty() {
-        grainpipe_cli::keep_exports_of(&mut doc, &args.targets);
-    }
-    let opts = PlanOptions {
+    let request = grainpipe_cli::PlanRequest {
+        overrides: args.overrides.clone(),
+        seed: args.seed,
         targets: args.targets.clone(),
-        memory_limit: available_memory(),
+        skip_exports: false,
+        out_dir: None,
     };
-    let plan = engine::plan(&doc, registry, &opts)?;
-    Ok((doc, plan))
+    grainpipe_cli::plan_pipeline(PipelineDoc::load(&args.file)?, registry, loader, &request)
 }
 
 #[derive(Debug, thiserror::Error, miette::Diagnostic)]

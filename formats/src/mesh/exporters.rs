@@ -639,6 +639,19 @@ fn zlib_level(o: &ExportOptions) -> Result<u32, (String, String)> {
         })
 }
 
+/// The preflight of the exports with `mesh: surface` (vtu, gmsh): the surface's, or the voxel
+/// mesh's ([`mesh_preflight`], `extra_per_corner` as there).
+fn voxel_or_surface_preflight(
+    meta: &ArtifactMeta,
+    o: &ExportOptions,
+    extra_per_corner: u64,
+) -> Result<u64, (String, String)> {
+    if check_surface_options(o)? {
+        return surface_preflight(meta, o);
+    }
+    mesh_preflight(meta, o, extra_per_corner)
+}
+
 fn keyed(r: Result<(), (String, String)>) -> Result<(), String> {
     r.map_err(|(k, m)| format!("option `{k}`: {m}"))
 }
@@ -709,10 +722,7 @@ impl Exporter for VtuExporter {
         Ok(())
     }
     fn preflight(&self, meta: &ArtifactMeta, o: &ExportOptions) -> Result<u64, (String, String)> {
-        if check_surface_options(o)? {
-            return surface_preflight(meta, o);
-        }
-        mesh_preflight(meta, o, 0)
+        voxel_or_surface_preflight(meta, o, 0)
     }
     fn write(
         &self,
@@ -1072,10 +1082,7 @@ impl Exporter for GmshExporter {
         check_surface_options(o).map(|_| ())
     }
     fn preflight(&self, meta: &ArtifactMeta, o: &ExportOptions) -> Result<u64, (String, String)> {
-        if check_surface_options(o)? {
-            return surface_preflight(meta, o);
-        }
-        mesh_preflight(meta, o, 1)
+        voxel_or_surface_preflight(meta, o, 1)
     }
     fn write(
         &self,
