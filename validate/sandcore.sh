@@ -6,6 +6,10 @@
 #                                 # volume-equivalent spheres, 30 paired realizations
 #   validate/sandcore.sh unseen   # make validate-sandcore-unseen: two disjoint halves of
 #                                 # the shipped grains, 15 realizations each
+#   validate/sandcore.sh synthetic # make validate-sandcore-synthetic: grains.synthetic
+#                                 # families (new grains every realization: the sand of
+#                                 # the shipped grains' statistics, more elongated, rougher),
+#                                 # 10 realizations each
 #   validate/sandcore.sh ablation # make validate-sandcore-ablation: one factor at a time
 #                                 # (fallbacks, gap 4 um, one layer), 15 realizations each;
 #                                 # `fallbacks`, `gap`, `layers` run one of them
@@ -65,6 +69,28 @@ case "${1:-paper}" in
       --vary "grains.files=$(half 0),$(half 1)" --set library.drop_oversize=true \
       "${common[@]}" --out "$OUT/unseen"
     ;;
+  synthetic)
+    # The protocol with its grains replaced by grains.synthetic (30 new grains drawn from
+    # the realization's seed, D50 = 140 um log-normal): sands the chain has never seen.
+    # Families: the shipped sand's shape statistics (L/T 1.82, W/T 1.37, roughness 0.13),
+    # more elongated (L/T 2.6, W/T 1.6) and rougher (0.25). Grains wider than the 280 um cap
+    # are dropped (drop_oversize; clumps.library warns with the volume share).
+    pipeline=$(mktemp --suffix=.yaml)
+    trap 'rm -f "$pipeline"' EXIT
+    sed -e 's/use: grains.from_harmonics/use: grains.synthetic/' \
+      -e '/directory: data\/sand-grains\/MA107-6-fine/d' \
+      -e 's/^      d50: 140 um$/      count: 30/' pipelines/sandcore-paper.yaml > "$pipeline"
+    grep -q 'use: grains.synthetic' "$pipeline" && grep -q 'count: 30' "$pipeline" \
+      || { echo "sandcore.sh: pipelines/sandcore-paper.yaml changed; update the synthetic mode" >&2; exit 2; }
+    for family in "base:" \
+      "elongated:--set grains.length_to_thickness=2.6 --set grains.width_to_thickness=1.6" \
+      "rough:--set grains.roughness=0.25"; do
+      name=${family%%:*}
+      read -r -a sets <<< "${family#*:}"
+      "$PIPE" sweep "$pipeline" --realizations "${REALIZATIONS:-10}" \
+        --set library.drop_oversize=true "${sets[@]}" "${common[@]}" --out "$OUT/synthetic-$name"
+    done
+    ;;
   fallbacks) ablation fallbacks pack.plain_tries=6,0 ;;  # our fallbacks from the first jam
   gap) ablation gap pack.min_gap=8um,4um ;;
   layers) ablation layers pack.layers=2,1 ;;
@@ -74,11 +100,11 @@ case "${1:-paper}" in
     ablation layers pack.layers=2,1
     ;;
   *)
-    echo "usage: $0 paper|unseen|ablation|fallbacks|gap|layers" >&2
+    echo "usage: $0 paper|unseen|synthetic|ablation|fallbacks|gap|layers" >&2
     exit 2
     ;;
 esac
 sweeps=()
-for d in "$OUT"/{paper,unseen,fallbacks,gap,layers}; do [ -f "$d/sweep.json" ] && sweeps+=("$d"); done
+for d in "$OUT"/{paper,unseen,synthetic-base,synthetic-elongated,synthetic-rough,fallbacks,gap,layers}; do [ -f "$d/sweep.json" ] && sweeps+=("$d"); done
 "$PYTHON" validate/sandcore_analysis.py "${sweeps[@]}" > "$OUT/tables.md"
 echo "tables: $OUT/tables.md"

@@ -52,6 +52,8 @@ pub struct SetupArgs {
     #[arg(long = "vary", value_name = "STEP.KEY=VALUES")]
     pub vary: Vec<String>,
     /// Realizations per parameter point (each with its own seed, the same at every point).
+    /// On an existing sweep directory a larger count adds realizations (the runs on record
+    /// are kept); a smaller one is refused.
     #[arg(long, default_value_t = 1)]
     pub realizations: usize,
     /// Values to collect into the table: `step.port` (every numeric column of a table, every
@@ -397,16 +399,43 @@ pub fn prepare(
     }
     if Manifest::path(&dir).exists() {
         let old = Manifest::load(&dir).map_err(|e| fail(2, e))?;
-        if !old.same_sweep(&m) {
+        if !old.same_points(&m) {
             return Err(fail(
                 2,
                 format!(
-                    "{} holds a different sweep (pipeline content, seed, --set, --vary, \
-                     --realizations or --collect differ); choose another --out or delete it",
+                    "{} holds a different sweep (pipeline content, seed, --set, --vary or \
+                     --collect differ); choose another --out or delete it",
                     dir.display()
                 ),
             ));
         }
+        if m.realizations < old.realizations {
+            return Err(fail(
+                2,
+                format!(
+                    "{} holds this sweep with {} realizations; a sweep directory only grows: \
+                     ask for --realizations {} (or more, to add realizations)",
+                    dir.display(),
+                    old.realizations,
+                    old.realizations
+                ),
+            ));
+        }
+        if m.realizations > old.realizations {
+            // Issue 36: `--realizations N` on an existing sweep adds realizations; the runs
+            // already done keep their ids and results.
+            if !a.quiet {
+                eprintln!(
+                    "sweep {}: extending from {} to {} realizations (the {} runs on record are kept)",
+                    m.pipeline_name,
+                    old.realizations,
+                    m.realizations,
+                    old.runs.len()
+                );
+            }
+        }
+        // The runs on record keep their ids (a sweep extended earlier has ids of two widths).
+        m = old.extended_to(&m);
     }
     m.save(&dir).map_err(|e| fail(1, e))?;
     let todo: Vec<usize> = (0..m.runs.len())

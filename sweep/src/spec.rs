@@ -196,12 +196,36 @@ impl Manifest {
     /// Whether `other` describes the same sweep (runs, seeds, collected values); the cache
     /// directory and thread count may differ between invocations.
     pub fn same_sweep(&self, other: &Manifest) -> bool {
+        self.same_points(other) && self.realizations == other.realizations
+    }
+    /// Whether `other` is this sweep with possibly another number of realizations: the same
+    /// pipeline content, seed, `--set`, `--vary` and `--collect`. Realization r has the same
+    /// seed in both ([`realization_seed`] depends on r only), so their common runs are the
+    /// same runs.
+    pub fn same_points(&self, other: &Manifest) -> bool {
         self.pipeline_blake3 == other.pipeline_blake3
             && self.base_seed == other.base_seed
             && self.fixed == other.fixed
             && self.vary == other.vary
-            && self.realizations == other.realizations
             && self.collect == other.collect
+    }
+    /// This sweep (on disk, `self`) grown to the realizations of `wider` (the same points,
+    /// more realizations): every run of `self` keeps its id, so its results are reused, and
+    /// the new realizations get ids of `wider`'s width (`p000-r100` beside `p000-r99`). The
+    /// run order is `wider`'s (point-major, then realization).
+    pub fn extended_to(&self, wider: &Manifest) -> Manifest {
+        let mut m = wider.clone();
+        for run in &mut m.runs {
+            if let Some(old) = self
+                .runs
+                .iter()
+                .find(|o| o.point == run.point && o.realization == run.realization)
+            {
+                debug_assert_eq!(old.seed, run.seed);
+                run.id = old.id.clone();
+            }
+        }
+        m
     }
     pub fn run(&self, id: &str) -> Option<&RunSpec> {
         self.runs.iter().find(|r| r.id == id)
@@ -417,6 +441,66 @@ pub fn error_text(e: &PipelineError) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn manifest(realizations: usize) -> Manifest {
+        let vary = vec![parse_vary("pack.volume_fraction=0.2,0.3").unwrap()];
+        Manifest {
+            format: MANIFEST_FORMAT,
+            pipeline: PathBuf::from("/p.yaml"),
+            pipeline_blake3: "h".into(),
+            pipeline_name: "p".into(),
+            base_seed: 5,
+            fixed: vec![],
+            runs: runs(&vary, realizations, 5),
+            vary,
+            realizations,
+            collect: vec![],
+            cache_dir: None,
+            threads: None,
+            rve: None,
+        }
+    }
+
+    /// Issue 36: extending 3 realizations to 101 keeps the 6 ids on record (`p000-r02`),
+    /// names the new ones at the new width (`p000-r100`), and gives every run the seed and
+    /// overrides of a sweep planned with 101 from the start.
+    #[test]
+    fn extending_a_sweep_keeps_the_runs_on_record() {
+        let (old, wide) = (manifest(3), manifest(101));
+        assert!(old.same_points(&wide) && !old.same_sweep(&wide));
+        let m = old.extended_to(&wide);
+        assert_eq!(m.runs.len(), 202);
+        for o in &old.runs {
+            let r = m
+                .runs
+                .iter()
+                .find(|r| r.id == o.id)
+                .expect("an old id is kept");
+            assert_eq!(
+                (r.point, r.realization, r.seed),
+                (o.point, o.realization, o.seed)
+            );
+            assert_eq!(r.overrides, o.overrides);
+        }
+        assert_eq!(m.runs[2].id, "p000-r02");
+        assert_eq!(m.runs[3].id, "p000-r003");
+        assert_eq!(m.runs[100].id, "p000-r100");
+        assert_eq!(m.runs[101].id, "p001-r00");
+        for (r, w) in m.runs.iter().zip(&wide.runs) {
+            assert_eq!(
+                (r.point, r.realization, r.seed),
+                (w.point, w.realization, w.seed)
+            );
+        }
+        let mut ids: Vec<_> = m.runs.iter().map(|r| &r.id).collect();
+        ids.sort();
+        ids.dedup();
+        assert_eq!(ids.len(), 202, "ids stay unique");
+        // Another sweep (another base seed) is not extended.
+        let mut other = manifest(101);
+        other.base_seed = 6;
+        assert!(!old.same_points(&other));
+    }
 
     #[test]
     fn vary_lists_ranges_and_nested_values() {

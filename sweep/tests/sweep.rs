@@ -358,6 +358,73 @@ fn sweep_runs_once_resumes_and_records_failures() {
     assert!(prepare(&other, &mut reg, &mut |_, _| Ok(())).is_err());
 }
 
+/// Issue 36: `--realizations N` on an existing sweep directory adds realizations: only the
+/// new runs are to do, the runs on record are not recomputed, the table holds all of them,
+/// and asking for fewer than the directory holds is refused.
+#[test]
+fn more_realizations_extend_a_sweep() {
+    let tmp = tempfile::tempdir().unwrap();
+    let vary = ["pack.volume_fraction=0.15,0.25"];
+    let collect = ["phases.phases.volume_fraction"];
+    let mut reg = registry();
+    let launch = launcher();
+    let p = prepare(
+        &setup(tmp.path(), &vary, 2, &collect),
+        &mut reg,
+        &mut |_, _| Ok(()),
+    )
+    .unwrap();
+    let (done, failed) = runner::run_local(&p.dir, &p.manifest, &p.todo, &opts(2, None), &launch);
+    assert_eq!((done, failed), (4, 0));
+    let before: Vec<_> = p
+        .manifest
+        .runs
+        .iter()
+        .map(|r| (r.id.clone(), mtime(&runner::result_path(&p.dir, &r.id))))
+        .collect();
+    let p = prepare(
+        &setup(tmp.path(), &vary, 3, &collect),
+        &mut reg,
+        &mut |_, _| Ok(()),
+    )
+    .unwrap();
+    assert_eq!(p.manifest.realizations, 3);
+    assert_eq!(p.manifest.runs.len(), 6);
+    let todo: Vec<_> = p
+        .todo
+        .iter()
+        .map(|&i| p.manifest.runs[i].id.as_str())
+        .collect();
+    assert_eq!(todo, ["p000-r02", "p001-r02"]);
+    let (done, failed) = runner::run_local(&p.dir, &p.manifest, &p.todo, &opts(2, None), &launch);
+    assert_eq!((done, failed), (2, 0));
+    for (id, t) in &before {
+        assert_eq!(
+            mtime(&runner::result_path(&p.dir, id)),
+            *t,
+            "{id} was not rerun"
+        );
+    }
+    let (table, _) = grainpipe_sweep::table::write_tables(&p.dir, &p.manifest).unwrap();
+    assert_eq!(table.rows(), 6);
+    // The new realization is the one a 3-realization sweep planned from the start runs.
+    let fresh = tempfile::tempdir().unwrap();
+    let q = prepare(
+        &setup(fresh.path(), &vary, 3, &collect),
+        &mut reg,
+        &mut |_, _| Ok(()),
+    )
+    .unwrap();
+    assert_eq!(q.manifest.runs[2].seed, p.manifest.runs[2].seed);
+    // A directory only grows.
+    assert!(prepare(
+        &setup(tmp.path(), &vary, 1, &collect),
+        &mut reg,
+        &mut |_, _| Ok(())
+    )
+    .is_err());
+}
+
 /// Every parameter point is preflighted before anything runs and every invalid point is
 /// reported, with the did-you-mean help of `--set`.
 const WAIT_PIPELINE: &str = "name: wait
