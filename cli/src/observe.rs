@@ -141,6 +141,11 @@ impl Reporter for StepReporter {
     fn cancelled(&self) -> bool {
         self.cancel.load(Ordering::Relaxed)
     }
+    fn detail(&self, text: &str) {
+        if !self.quiet {
+            self.bar.set_message(text.to_string());
+        }
+    }
 }
 
 impl Drop for StepReporter {
@@ -255,7 +260,7 @@ impl Observer for TerminalObserver {
         let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
         bar.set_style(
             ProgressStyle::with_template(
-                "{prefix:>16} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}",
+                "{prefix:>16} [{bar:30}] {percent:>3}% {elapsed_precise} eta {eta} {msg}",
             )
             .expect("valid template")
             .progress_chars("=> "),

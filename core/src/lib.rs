@@ -29,7 +29,7 @@ pub use registry::{Exporter, Registry};
 pub use serde_json;
 pub use stage::{
     announced_grid, input, InputMetas, Inputs, Outputs, ParamSpec, PortSpec, Preflight, Prepared,
-    RunContext, Stage, StageError, StageInfo, TypedStage,
+    ResidualProgress, RunContext, Stage, StageError, StageInfo, TypedStage,
 };
 
 /// grainpipe's version, recorded in every output's provenance.

@@ -7,8 +7,9 @@ use grainpipe_core::raster::SphereRaster;
 use grainpipe_core::spatial::CellList;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
-    params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, PhaseImage,
-    PortSpec, Preflight, RunContext, StageError, StageInfo, Table, TypedStage, WorldSphere,
+    params, Artifact, ArtifactKind, ArtifactMeta, ComponentConvention, Field, FieldData, Grid,
+    InputMetas, Inputs, Outputs, PhaseImage, PortSpec, Preflight, RunContext, StageError,
+    StageInfo, Table, TypedStage, WorldSphere,
 };
 
 /// Largest image this stage writes (voxels).
@@ -257,7 +258,7 @@ impl TypedStage for Bridges {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "binder.bridges",
-            "1.0.0",
+            "1.1.0",
             "Cementing matrix as trapezoidal bridges (Topin et al., J. Cereal Sci. 47, 347 \
              (2008); Heinze et al., Phys. Rev. E 101, 052901 (2020), sec. II.B and Fig. 2a): \
              every pair of particles whose surfaces are at most max_gap apart is joined by the \
@@ -283,6 +284,14 @@ impl TypedStage for Bridges {
                 "report",
                 ArtifactKind::Table,
                 "bridges, voxel and sub-sample phase fractions, the grid",
+            ),
+            PortSpec::new(
+                "particles",
+                ArtifactKind::Field,
+                "particle identity on the image grid: 1 + the packing index of the particle \
+                 covering most of a particle voxel's sub-samples, 0 elsewhere (exact in f32 up \
+                 to 2^24 particles); peridynamics.bond_based uses it to tell touching \
+                 particles apart (Table I)",
             ),
         ])
     }
@@ -344,12 +353,19 @@ impl TypedStage for Bridges {
             }
             None => 2 * (p.resolution as u64).pow(dim as u32),
         } + 200 * up.map(|m| m.count_estimate).unwrap_or(0);
+        // The particle-identity field: 4 bytes per voxel, and the raster's (label, id) pairs.
+        let bytes = bytes + 12 * grid.as_ref().map_or(0, |g| g.voxel_count() as u64);
         let image = match &grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g.clone()),
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),
         };
+        let particles = match &grid {
+            Some(g) => ArtifactMeta::on_grid(ArtifactKind::Field, g.clone()),
+            None => ArtifactMeta::of(ArtifactKind::Field),
+        };
         Ok(Preflight::from_info(&self.info(), bytes)
             .announce("image", image)
+            .announce("particles", particles)
             .announce(
                 "report",
                 ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),
@@ -406,7 +422,8 @@ impl TypedStage for Bridges {
         let bridges = find_bridges(&parts, &pk.domain, p.eta, max_gap, |_, _| {
             ctx.check_cancelled()
         })?;
-        let (labels, counts) = rasterize(&parts, &bridges, &grid, p.supersampling as usize, ctx)?;
+        let (labels, ids, counts) =
+            rasterize(&parts, &bridges, &grid, p.supersampling as usize, ctx)?;
         let nvox = labels.len() as f64;
         let frac = |l: u8| labels.iter().filter(|&&x| x == l).count() as f64 / nvox;
         let sub_total: u64 = counts.iter().sum();
@@ -428,6 +445,14 @@ impl TypedStage for Bridges {
             .with_f64("coverage_small", "", vec![sfrac(SMALL)])
             .with_f64("coverage_matrix", "", vec![sfrac(MATRIX)])
             .with_f64("coverage_void", "", vec![sfrac(VOID)]);
+        let particles = Field::new(
+            grid.clone(),
+            "particle",
+            "",
+            ComponentConvention::Plain,
+            FieldData::F32(ids.iter().map(|&i| i as f32).collect()),
+        )
+        .map_err(StageError::failed)?;
         let mut out = Outputs::new();
         out.insert(
             "image".into(),
@@ -437,6 +462,7 @@ impl TypedStage for Bridges {
                 phases: phases(),
             }),
         );
+        out.insert("particles".into(), Artifact::Field(particles));
         out.insert("report".into(), Artifact::Table(report));
         Ok(out)
     }
@@ -444,14 +470,17 @@ impl TypedStage for Bridges {
 
 /// Labels every voxel of `grid`: the phase (large, small, matrix, void) covering most of its
 /// `s^d` sub-samples (ties to the lower label, i.e. void < large < small < matrix); also
-/// returns the sub-sample counts per label. Deterministic: the raster scans fixed slabs.
+/// returns each voxel's particle identity (1 + the index of the particle of the voxel's
+/// phase covering most of its sub-samples, ties to the lower index; 0 for void and matrix)
+/// and the sub-sample counts per label. Deterministic: the raster scans fixed slabs.
+#[allow(clippy::type_complexity)]
 pub fn rasterize(
     parts: &Particles,
     bridges: &[Bridge],
     grid: &Grid,
     s: usize,
     ctx: &RunContext,
-) -> Result<(Vec<u8>, [u64; 4]), StageError> {
+) -> Result<(Vec<u8>, Vec<u32>, [u64; 4]), StageError> {
     let dim = parts.dim;
     let spheres: Vec<WorldSphere> = parts
         .pos
@@ -502,13 +531,14 @@ pub fn rasterize(
         }
         v
     };
-    let mut labels = vec![VOID; grid.voxel_count()];
+    let mut voxels = vec![(VOID, 0u32); grid.voxel_count()];
     let class = &parts.class;
     let accs = raster.scan(
-        &mut labels,
-        || ([0u64; 4], Vec::<u32>::new()),
+        &mut voxels,
+        || ([0u64; 4], Vec::<u32>::new(), Vec::<(u32, u32)>::new()),
         |acc, cands, _v, centre, out| {
-            let (counts, near) = acc;
+            let (counts, near, bodies) = acc;
+            bodies.clear();
             // Bridges that can reach this voxel.
             near.clear();
             cells.visit(centre, reach, |k, _| {
@@ -531,6 +561,11 @@ pub fn rasterize(
                     }
                     if cd.distance(q) < 0.0 {
                         label = class[cd.body as usize];
+                        let body = cd.body;
+                        match bodies.iter_mut().find(|(b, _)| *b == body) {
+                            Some((_, n)) => *n += 1,
+                            None => bodies.push((body, 1)),
+                        }
                         break;
                     }
                 }
@@ -545,7 +580,14 @@ pub fn rasterize(
                     best = l;
                 }
             }
-            *out = best as u8;
+            // The particle of the winning phase with the most sub-samples (lowest index on
+            // ties, so the id does not depend on the candidates' order).
+            let id = bodies
+                .iter()
+                .filter(|(b, _)| class[*b as usize] as usize == best)
+                .max_by(|x, y| x.1.cmp(&y.1).then(y.0.cmp(&x.0)))
+                .map_or(0, |(b, _)| b + 1);
+            *out = (best as u8, id);
             for l in 0..4 {
                 counts[l] += c[l] as u64;
             }
@@ -553,10 +595,11 @@ pub fn rasterize(
         |done, total| ctx.progress(done, total),
     )?;
     let mut counts = [0u64; 4];
-    for (c, _) in accs {
+    for (c, _, _) in accs {
         for l in 0..4 {
             counts[l] += c[l];
         }
     }
-    Ok((labels, counts))
+    let (labels, ids) = voxels.into_iter().unzip();
+    Ok((labels, ids, counts))
 }

@@ -4,8 +4,8 @@
 use grainpipe_core::units::{ThermalConductivity, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs,
-    ParamChoice, PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table, Tensor,
-    TensorConvention, TypedStage,
+    ParamChoice, PhaseImage, PortSpec, Preflight, ResidualProgress, RunContext, StageError,
+    StageInfo, Table, Tensor, TensorConvention, TypedStage,
 };
 use indexmap::IndexMap;
 use serde::{Deserialize, Serialize};
@@ -348,18 +348,17 @@ pub fn solve_all<T: Real>(
     let n = g.voxel_count() as f64;
     let mut tensor = [[0.0; 3]; 3];
     let mut history = vec![];
-    let total = (p.load_cases.len() * p.max_iterations) as u64;
+    let residuals = ResidualProgress::new(p.load_cases.len(), p.tolerance);
     let scheme = format!("{:?}", p.discretization).to_lowercase();
     for (ci, case) in p.load_cases.iter().enumerate() {
         let mut load = [0.0; 3];
         load[*case as usize] = 1.0;
         let t = Instant::now();
-        let mut progress = |it: usize, _r: f64| {
-            ctx.progress((ci * p.max_iterations + it) as u64, total)
-                .is_ok()
-        };
+        let mut progress =
+            |_it: usize, residual: f64| ctx.residual_progress(&residuals, ci, residual).is_ok();
         let sol = solve(&mut problem, &load, &opt, &mut progress)
             .map_err(|(e, _)| solve_failure(case.name(), &scheme, &e))?;
+        residuals.finish(ci);
         for (i, r) in sol.history.iter().enumerate() {
             history.push((case.name().to_string(), i, *r));
         }

@@ -4,12 +4,13 @@
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, Collection, ComponentConvention, Field,
     FieldData, Grid, InputMetas, Inputs, Outputs, ParamChoice, PhaseImage, PortSpec, Preflight,
-    RunContext, StageError, StageInfo, Table, Tensor, TensorConvention, TypedStage,
+    ResidualProgress, RunContext, StageError, StageInfo, Table, Tensor, TensorConvention,
+    TypedStage,
 };
 use indexmap::IndexMap;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use crate::common::{
@@ -569,17 +570,13 @@ fn solve_lanes<T: Real>(
     let lane_bytes =
         bytes_per_voxel(scheme, p.solver == Solver::Cg, std::mem::size_of::<T>()) * n as f64;
     let lanes = concurrent_cases(cases, lane_bytes as u64).min(max_lanes.max(1));
-    let total = (cases * p.max_iterations) as u64;
     let scheme_name = format!("{:?}", p.discretization).to_lowercase();
-    // Iterations done per load case (for the progress report) and a stop flag set on
+    // Progress by each load case's residual against the tolerance, and a stop flag set on
     // cancellation or on the first failure.
-    let done: Vec<AtomicU64> = (0..cases).map(|_| AtomicU64::new(0)).collect();
+    let residuals = ResidualProgress::new(cases, p.tolerance);
     let stop = AtomicBool::new(false);
-    let report = |ci: usize, it: usize| {
-        done[ci].store(it as u64, Ordering::Relaxed);
-        // A finished load case counts as its whole share (see below).
-        let sum: u64 = done.iter().map(|d| d.load(Ordering::Relaxed)).sum();
-        if ctx.progress(sum, total).is_err() {
+    let report = |ci: usize, residual: f64| {
+        if ctx.residual_progress(&residuals, ci, residual).is_err() {
             stop.store(true, Ordering::Relaxed);
         }
         !stop.load(Ordering::Relaxed)
@@ -620,11 +617,11 @@ fn solve_lanes<T: Real>(
                 let mut load = [0.0; 6];
                 load[p.load_cases[ci].column()] = 1.0;
                 let t = Instant::now();
-                let mut progress = |it: usize, _r: f64| report(ci, it);
+                let mut progress = |_it: usize, residual: f64| report(ci, residual);
                 match solve(&mut problem, &load, &opt, &mut progress) {
                     Ok(sol) => {
                         let secs = t.elapsed().as_secs_f64();
-                        done[ci].store(p.max_iterations as u64, Ordering::Relaxed);
+                        residuals.finish(ci);
                         let mut fields = if p.fields {
                             Some((vec![0.0; 6 * n], vec![0.0; 6 * n]))
                         } else {

@@ -144,6 +144,12 @@ fn default_interface() -> InterfaceMaterial {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ParamChoice)]
 #[serde(rename_all = "snake_case")]
 pub enum ParticleIdentity {
+    /// `packing` when the `particles` input is connected, `components` otherwise.
+    Auto,
+    /// From the `particles` input (binder.bridges gives it, from the packing the image was
+    /// made of): touching particles of one phase stay apart, and the bonds between them
+    /// follow the interface rule of Table I.
+    Packing,
     /// Face-connected regions of one particle phase are particles (two touching particles of
     /// the same phase merge into one: bonds between them are particle bonds).
     Components,
@@ -226,8 +232,9 @@ pub struct BondBasedParams {
     /// E_i = E_m, K_i = K_m (Table I).
     #[param(default = default_interface())]
     pub interface: InterfaceMaterial,
-    /// How "the same particle" is decided from the labels.
-    #[param(default = ParticleIdentity::Components)]
+    /// How "the same particle" is decided: from the image maker's particle ids (`packing`,
+    /// the default when the `particles` input is connected) or from the labels.
+    #[param(default = ParticleIdentity::Auto)]
     pub particle_identity: ParticleIdentity,
     /// Horizon h in voxel edges (the paper: 3, 28 neighbours in 2-D, 122 in 3-D).
     #[param(default = 3.0)]
@@ -647,16 +654,17 @@ impl TypedStage for BondBased {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "peridynamics.bond_based",
-            "1.0.0",
+            "1.1.0",
             "Bond-based peridynamics of a phase image under uniaxial tension (Heinze et al. \
              2020, sections II.C-D). Each non-void voxel is a node; it bonds to every node \
              within the horizon h (default 3 voxel edges: 28 neighbours in 2-D, 122 in 3-D) \
              through fixed grid offsets, so no bond list is stored (about 70-100 bytes per \
              node, f32). Bond classes (II.D): both nodes in the same particle -> that phase's \
              E; both matrix -> matrix E; otherwise (different particles, particle-matrix) -> \
-             interface E; bonds to void do not exist. Particle identity comes from \
-             face-connected regions of a particle label (touching particles of one label \
-             merge) or from the label alone. Micromodulus eq. (5): 2-D plane stress \
+             interface E; bonds to void do not exist. Particle identity comes from the \
+             image maker's particle ids (`particles` input, e.g. binder.bridges: touching \
+             particles stay apart), else from face-connected regions of a particle label \
+             (touching particles of one label merge) or from the label alone. Micromodulus eq. (5): 2-D plane stress \
              c = 6E/(pi h^3 (1 - nu)), nu = 1/3, per unit thickness; 3-D c = 18K/(pi h^4), \
              nu = 1/4; bond force f = c s n V_i V_j (eq. (6)-(7)). The first and last \
              `grip_layers` node layers along `axis` are held (clamped or sliding); the \
@@ -670,12 +678,21 @@ impl TypedStage for BondBased {
              step (Silling & Askari 2005); energy growth stops the run. Nodal stress \
              sigma_i = 1/(2 V_i) sum_j f_ij (x) xi_ij. Deterministic for any thread count.",
         )
-        .inputs(vec![PortSpec::new(
-            "image",
-            ArtifactKind::PhaseImage,
-            "phase image with square (2-D, nz = 1) or cubic voxels; phases named or labelled \
-             in `materials`",
-        )])
+        .inputs(vec![
+            PortSpec::new(
+                "image",
+                ArtifactKind::PhaseImage,
+                "phase image with square (2-D, nz = 1) or cubic voxels; phases named or \
+                 labelled in `materials`",
+            ),
+            PortSpec::optional(
+                "particles",
+                ArtifactKind::Field,
+                "particle identity per voxel on the image grid (1 + particle index on particle \
+                 voxels, 0 elsewhere; binder.bridges `particles`): used by \
+                 particle_identity: packing (the default when connected)",
+            ),
+        ])
         .outputs(vec![
             PortSpec::new(
                 "displacement",
@@ -713,6 +730,29 @@ impl TypedStage for BondBased {
         check_params(p)?;
         let grid = grainpipe_core::announced_grid(inputs, "image")?;
         check_grid(&grid, p.axis.index())?;
+        match (p.particle_identity, inputs.get("particles")) {
+            (ParticleIdentity::Packing, None) => {
+                return Err(StageError::param(
+                    "particle_identity",
+                    "`packing` needs the `particles` input (in: { particles: \
+                     bridges.particles }); without it use `components`",
+                ))
+            }
+            (_, Some(m)) => {
+                if let Some(g) = &m.grid {
+                    if g.dims != grid.dims {
+                        return Err(StageError::input(
+                            "particles",
+                            format!(
+                                "the particle ids are on a {:?} grid, the image on {:?}",
+                                g.dims, grid.dims
+                            ),
+                        ));
+                    }
+                }
+            }
+            _ => {}
+        }
         let dx = grid.spacing[0];
         let h = horizon_voxels(p, dx)?;
         let dim3 = grid.dims[2] > 1;
@@ -807,7 +847,16 @@ impl TypedStage for BondBased {
             ));
         }
         let phases = resolve_phases(&p.materials, image)?;
-        let out = run_model(p, plan.horizon, image, &phases, ctx)?;
+        let particles = match inputs.get("particles") {
+            Some(a) => Some(particle_ids(
+                a.as_field().ok_or_else(|| {
+                    StageError::input("particles", "expects a Field of particle ids")
+                })?,
+                &image.grid,
+            )?),
+            None => None,
+        };
+        let out = run_model(p, plan.horizon, image, particles, &phases, ctx)?;
         Ok(out)
     }
 }
@@ -821,15 +870,47 @@ pub struct RunResult {
     pub stats: Stats,
 }
 
-/// Runs the model on an image with resolved phases.
+/// The particle ids of a `particles` field: non-negative integers on the image's grid.
+fn particle_ids(field: &Field, grid: &Grid) -> Result<std::sync::Arc<[u32]>, StageError> {
+    if field.grid.dims != grid.dims || field.components != 1 {
+        return Err(StageError::input(
+            "particles",
+            format!(
+                "a scalar field on the image grid {:?} is needed, got {} component(s) on {:?}",
+                grid.dims, field.components, field.grid.dims
+            ),
+        ));
+    }
+    let n = field.data.len();
+    (0..n)
+        .map(|v| {
+            let x = match &field.data {
+                FieldData::F32(d) => d[v] as f64,
+                FieldData::F64(d) => d[v],
+            };
+            if x >= 0.0 && x.fract() == 0.0 && x < u32::MAX as f64 {
+                Ok(x as u32)
+            } else {
+                Err(StageError::input(
+                    "particles",
+                    format!("value {x} at voxel {v} is not a particle id (0, 1, 2, ...)"),
+                ))
+            }
+        })
+        .collect()
+}
+
+/// Runs the model on an image with resolved phases (and, for `particle_identity: packing`
+/// or `auto`, the particle ids of its voxels).
 pub fn run_model(
     p: &BondBasedParams,
     horizon: f64,
     image: &PhaseImage,
+    particles: Option<std::sync::Arc<[u32]>>,
     phases: &[PhaseSpec; 256],
     ctx: &RunContext,
 ) -> Result<Outputs, StageError> {
-    let r = solve_image(p, horizon, image, phases, ctx)?;
+    let r = solve_image_with(p, horizon, image, particles, phases, ctx)?;
     let grid = &image.grid;
     let mut out = Outputs::new();
     let field = |name: &str, unit: &str, conv, data| {
@@ -853,11 +934,23 @@ pub fn run_model(
     Ok(out)
 }
 
-/// The solve behind the stage.
+/// The solve behind the stage, with particle identity from the labels (`packing` is refused).
 pub fn solve_image(
     p: &BondBasedParams,
     horizon: f64,
     image: &PhaseImage,
+    phases: &[PhaseSpec; 256],
+    ctx: &RunContext,
+) -> Result<RunResult, StageError> {
+    solve_image_with(p, horizon, image, None, phases, ctx)
+}
+
+/// The solve behind the stage; `particles` are the voxels' particle ids, if known.
+pub fn solve_image_with(
+    p: &BondBasedParams,
+    horizon: f64,
+    image: &PhaseImage,
+    particles: Option<std::sync::Arc<[u32]>>,
     phases: &[PhaseSpec; 256],
     ctx: &RunContext,
 ) -> Result<RunResult, StageError> {
@@ -882,9 +975,16 @@ pub fn solve_image(
             e: p.interface.e.si(),
             gc: p.interface.toughness.si(),
         },
-        identity: match p.particle_identity {
-            ParticleIdentity::Components => Identity::Components,
-            ParticleIdentity::Phase => Identity::Phase,
+        identity: match (p.particle_identity, particles) {
+            (ParticleIdentity::Auto | ParticleIdentity::Packing, Some(ids)) => Identity::Given(ids),
+            (ParticleIdentity::Packing, None) => {
+                return Err(StageError::param(
+                    "particle_identity",
+                    "`packing` needs the `particles` input (binder.bridges `particles`)",
+                ))
+            }
+            (ParticleIdentity::Auto | ParticleIdentity::Components, _) => Identity::Components,
+            (ParticleIdentity::Phase, _) => Identity::Phase,
         },
         breaking: p.breaking,
         axis: p.axis.index(),
@@ -898,6 +998,7 @@ pub fn solve_image(
     };
     let built = build(dims, &image.labels, phases, dx, &setup).map_err(|e| match e {
         crate::setup::SetupError::Unloaded => StageError::input("image", e.to_string()),
+        crate::setup::SetupError::Identity(_) => StageError::input("particles", e.to_string()),
         _ => StageError::failed(e.to_string()),
     })?;
     let mut notes = Vec::new();

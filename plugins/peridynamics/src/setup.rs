@@ -35,7 +35,7 @@ impl PhaseSpec {
 }
 
 /// How particle identity is known.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Identity {
     /// Each face-connected region of one particle label is one particle (touching particles
     /// of the same label merge into one).
@@ -43,6 +43,9 @@ pub enum Identity {
     /// All voxels of a particle label are one particle (no interface between particles of
     /// the same phase).
     Phase,
+    /// Given per voxel (x fastest), e.g. by the image maker from its packing: 1 + the
+    /// particle's index on particle voxels (0 elsewhere). Touching particles stay apart.
+    Given(std::sync::Arc<[u32]>),
 }
 
 /// How the grips hold the sample.
@@ -141,6 +144,8 @@ pub enum SetupError {
         nodes: usize,
         at: [usize; 3],
     },
+    /// Given particle ids that do not fit the image.
+    Identity(String),
 }
 
 impl std::fmt::Display for SetupError {
@@ -150,6 +155,7 @@ impl std::fmt::Display for SetupError {
                 f,
                 "no material node lies in a grip layer: the sample cannot be loaded"
             ),
+            SetupError::Identity(text) => write!(f, "particles: {text}"),
             SetupError::Floating {
                 clusters,
                 nodes,
@@ -232,9 +238,42 @@ pub fn build(
     for (l, p) in phases.iter().enumerate() {
         is_particle[l] = p.role == Role::Particle;
     }
-    let (pid, nparticles) = match s.identity {
-        Identity::Components => particle_ids(dims, labels, &is_particle),
-        Identity::Phase => (vec![0; labels.len()], 0),
+    let given;
+    let (pid, nparticles): (&[u32], usize) = match &s.identity {
+        Identity::Components => {
+            given = particle_ids(dims, labels, &is_particle);
+            (&given.0, given.1)
+        }
+        Identity::Phase => {
+            given = (vec![0; labels.len()], 0);
+            (&given.0, 0)
+        }
+        Identity::Given(ids) => {
+            if ids.len() != labels.len() {
+                return Err(SetupError::Identity(format!(
+                    "the particle ids have {} values for {} voxels",
+                    ids.len(),
+                    labels.len()
+                )));
+            }
+            let mut seen = std::collections::BTreeSet::new();
+            for (v, (&id, &l)) in ids.iter().zip(labels).enumerate() {
+                if is_particle[l as usize] {
+                    if id == 0 {
+                        let [nx, ny, _] = dims;
+                        return Err(SetupError::Identity(format!(
+                            "voxel ({}, {}, {}) is of a particle phase (label {l}) but has no \
+                             particle id",
+                            v % nx,
+                            (v / nx) % ny,
+                            v / (nx * ny)
+                        )));
+                    }
+                    seen.insert(id);
+                }
+            }
+            (ids, seen.len())
+        }
     };
     let mut region = vec![0u32; np];
     let mut kself = vec![0f32; np];
@@ -257,8 +296,8 @@ pub fn build(
                 let i = layout.pidx(x, y, z);
                 // Region ids: 1 + label for matrix phases (and particle phases without
                 // identity), 257 + particle id for particles found as components.
-                region[i] = match (ph.role, s.identity) {
-                    (Role::Particle, Identity::Components) => 257 + pid[v],
+                region[i] = match (ph.role, &s.identity) {
+                    (Role::Particle, Identity::Components | Identity::Given(_)) => 257 + pid[v],
                     _ => 1 + lab as u32,
                 };
                 if ph.role == Role::Particle {
@@ -272,7 +311,7 @@ pub fn build(
         }
     }
     let particles = match s.identity {
-        Identity::Components => nparticles,
+        Identity::Components | Identity::Given(_) => nparticles,
         Identity::Phase => particles_by_phase.iter().filter(|&&b| b).count(),
     };
     let kint = scaled_bond_constant(s.interface.e, e_ref, s.horizon, dim3) as f32;

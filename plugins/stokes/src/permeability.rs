@@ -13,8 +13,8 @@ use grainpipe_core::subvoxel::{InterfaceParams, Interfaces};
 use grainpipe_core::units::{Pressure, Viscosity, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, ComponentConvention, Field, FieldData,
-    Grid, InputMetas, Inputs, Outputs, ParamChoice, PortSpec, Preflight, RunContext, StageError,
-    StageInfo, Table, Tensor, TensorConvention, TypedStage,
+    Grid, InputMetas, Inputs, Outputs, ParamChoice, PortSpec, Preflight, ResidualProgress,
+    RunContext, StageError, StageInfo, Table, Tensor, TensorConvention, TypedStage,
 };
 use serde::{Deserialize, Serialize};
 
@@ -478,15 +478,11 @@ impl TypedStage for PermeabilityStage {
                 ..CycleSettings::default()
             },
         };
-        let total = (axes.len() * p.max_iterations as usize) as u64;
-        let maxit = p.max_iterations as u64;
-        // Cases may run out of order (the one whose fields are kept runs last): count them.
-        let mut seen: (Option<usize>, u64) = (None, 0);
-        let mut monitor = |case: usize, it: usize, _: f64| {
-            if seen.0 != Some(case) {
-                seen = (Some(case), seen.1 + 1);
-            }
-            ctx.progress((seen.1 - 1) * maxit + it as u64, total)
+        // Progress by each direction's residual against the tolerance (the cases may run
+        // out of order: the one whose fields are kept runs last).
+        let residuals = ResidualProgress::new(axes.len(), p.tolerance);
+        let mut monitor = |case: usize, _it: usize, residual: f64| {
+            ctx.residual_progress(&residuals, case, residual)
         };
         let flow = match bc.boundary {
             Boundary::Walls => solve_walls(
