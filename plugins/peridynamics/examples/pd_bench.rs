@@ -136,6 +136,7 @@ fn main() {
         grip_layers: 1,
         strain: 1e-4,
         fail_on_floating: false,
+        stiffness_scale: 1.0,
     };
     let t = Instant::now();
     let b = build(img.grid.dims, &img.labels, &phases, 1e-6, &setup).unwrap();

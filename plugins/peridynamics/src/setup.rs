@@ -73,6 +73,10 @@ pub struct Setup {
     pub strain: f64,
     /// Refuse floating clusters instead of excluding them.
     pub fail_on_floating: bool,
+    /// Factor on every bond constant (1: eq. (5); the calibrated micromodulus scales it so
+    /// that the lattice's bulk modulus is E); the critical stretches are divided by its
+    /// square root, which keeps each bond's fracture energy and so G_c.
+    pub stiffness_scale: f64,
 }
 
 /// Micromodulus [Pa/m^3 in 2-D per unit thickness, Pa/m^4 in 3-D] of bond-based PD:
@@ -303,9 +307,11 @@ pub fn build(
                 if ph.role == Role::Particle {
                     particles_by_phase[lab] = true;
                 }
-                kself[i] = scaled_bond_constant(ph.e, e_ref, s.horizon, dim3) as f32;
+                kself[i] =
+                    (s.stiffness_scale * scaled_bond_constant(ph.e, e_ref, s.horizon, dim3)) as f32;
                 if s.breaking {
-                    sc_self[i] = critical_stretch(ph.e, ph.gc, h_m, dim3) as f32;
+                    sc_self[i] = (critical_stretch(ph.e, ph.gc, h_m, dim3)
+                        / s.stiffness_scale.sqrt()) as f32;
                 }
             }
         }
@@ -314,9 +320,11 @@ pub fn build(
         Identity::Components | Identity::Given(_) => nparticles,
         Identity::Phase => particles_by_phase.iter().filter(|&&b| b).count(),
     };
-    let kint = scaled_bond_constant(s.interface.e, e_ref, s.horizon, dim3) as f32;
+    let kint =
+        (s.stiffness_scale * scaled_bond_constant(s.interface.e, e_ref, s.horizon, dim3)) as f32;
     let sc_int = if s.breaking {
-        critical_stretch(s.interface.e, s.interface.gc, h_m, dim3) as f32
+        (critical_stretch(s.interface.e, s.interface.gc, h_m, dim3) / s.stiffness_scale.sqrt())
+            as f32
     } else {
         f32::INFINITY
     };

@@ -263,3 +263,64 @@ fn laminate_voigt_and_reuss() {
     assert!(par.abs() < 0.04, "parallel: {par:.4} off Voigt");
     assert!(perp.abs() < 0.04, "perpendicular: {perp:.4} off Reuss");
 }
+
+/// Issue 34, item 4: with `micromodulus: calibrated` the bulk of a homogeneous plate (2-D)
+/// and block (3-D) in uniaxial tension has the model's E, not the lattice's 6.4 % (5.7 %)
+/// more: the mean bulk sigma_yy over E eps_yy (eps_yy from the displacements two horizons
+/// inside the grips) is 1 within 1 %. The ratio the calibration divides by equals the
+/// stencil sums of `lattice_c` / `lattice_c3` (computed independently here) to 1e-12.
+#[test]
+fn calibrated_micromodulus_gives_the_model_modulus_in_the_bulk() {
+    use grainpipe_peridynamics::bond_based::{lattice_modulus_ratio, Micromodulus};
+    let (c11, c12) = lattice_c(3.0);
+    let e2 = c11 - c12 * c12 / c11;
+    assert!((lattice_modulus_ratio(3.0, false) - e2).abs() < 1e-12);
+    assert!((e2 - 1.0644).abs() < 1e-4, "2-D lattice E / E = {e2}");
+    let (c11, c12) = lattice_c3(3.0);
+    let e3 = c11 - 2.0 * c12 * c12 / (c11 + c12);
+    assert!((lattice_modulus_ratio(3.0, true) - e3).abs() < 1e-12);
+
+    let p = BondBasedParams {
+        micromodulus: Micromodulus::Calibrated,
+        ..plate_params()
+    };
+    let m = 6; // two horizons
+               // 2-D plate.
+    let (nx, ny) = (40, 48);
+    let r = run(&p, &image(nx, ny, vec![3; nx * ny]));
+    let eyy = (u2(&r, nx, nx / 2, ny - 1 - m, 1) - u2(&r, nx, nx / 2, m, 1))
+        / ((ny - 1 - 2 * m) as f64 * DX);
+    let bulk: Vec<f64> = (m..ny - m)
+        .flat_map(|y| (m..nx - m).map(move |x| (x, y)))
+        .map(|(x, y)| s2(&r, nx, x, y, 1))
+        .collect();
+    let ratio2 = bulk.iter().sum::<f64>() / bulk.len() as f64 / (E * eyy);
+    assert!(
+        (ratio2 - 1.0).abs() < 0.01,
+        "2-D bulk sigma / (E eps) = {ratio2}"
+    );
+    // 3-D block.
+    let d = [22, 26, 22];
+    let r = run(&p, &image3(d, vec![3; d[0] * d[1] * d[2]]));
+    let (cx, cz) = (d[0] / 2, d[2] / 2);
+    let eyy = (u3(&r, d, [cx, d[1] - 1 - m, cz], 1) - u3(&r, d, [cx, m, cz], 1))
+        / ((d[1] - 1 - 2 * m) as f64 * DX);
+    let mut sum = 0.0;
+    let mut n = 0.0;
+    for z in m..d[2] - m {
+        for y in m..d[1] - m {
+            for x in m..d[0] - m {
+                sum += s3(&r, d, [x, y, z], 1);
+                n += 1.0;
+            }
+        }
+    }
+    let ratio3 = sum / n / (E * eyy);
+    assert!(
+        (ratio3 - 1.0).abs() < 0.01,
+        "3-D bulk sigma / (E eps) = {ratio3}"
+    );
+    println!(
+        "calibrated: 2-D bulk {ratio2:.4}, 3-D bulk {ratio3:.4} (continuum rule: {e2:.4}, {e3:.4})"
+    );
+}

@@ -166,6 +166,7 @@ fn plate_lattice(nx: usize, ny: usize) -> grainpipe_peridynamics::setup::Built {
         grip_layers: 1,
         strain: 1e-3,
         fail_on_floating: false,
+        stiffness_scale: 1.0,
     };
     build([nx, ny, 1], &vec![3u8; nx * ny], &phases, 1e-6, &setup).unwrap()
 }

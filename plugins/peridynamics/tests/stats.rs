@@ -108,3 +108,40 @@ fn missing_component_and_grid_mismatch_are_refused() {
     let e = analyse(&StressStatsParams::default(), &f, &other).unwrap_err();
     assert!(e.to_string().contains("grid"), "{e}");
 }
+
+/// Issue 34, item 4: `margin: k` leaves out the k voxel layers along the image's in-plane
+/// faces. A plate whose outer 3 layers carry 0.78 MPa and whose interior carries 1 MPa: with
+/// margin 3 exactly the (nx - 6)(ny - 6) interior nodes remain, mean 1 MPa and variance 0;
+/// with margin 0 the side layers enter the mean by their share.
+#[test]
+fn margin_leaves_out_the_boundary_layers() {
+    let (nx, ny) = (30, 40);
+    let img = image(nx, ny, vec![1; nx * ny]);
+    let mut k = 0usize;
+    let field = field_for(&img, |_| {
+        let (x, y) = (k % nx, k / nx);
+        k += 1;
+        if x < 3 || x >= nx - 3 || y < 3 || y >= ny - 3 {
+            0.78e6
+        } else {
+            1e6
+        }
+    });
+    let p = StressStatsParams {
+        margin: 3,
+        ..Default::default()
+    };
+    let (stats, _) = analyse(&p, &field, &img).unwrap();
+    assert_eq!(stats[0].nodes, (nx - 6) * (ny - 6));
+    assert!(
+        (stats[0].mean - 1e6).abs() < 1e-6 * 1e6,
+        "{}",
+        stats[0].mean
+    );
+    assert!(stats[0].variance.abs() < 1e-12);
+    let (all, _) = analyse(&StressStatsParams::default(), &field, &img).unwrap();
+    let interior = ((nx - 6) * (ny - 6)) as f64;
+    let expect = (interior * 1e6 + ((nx * ny) as f64 - interior) * 0.78e6) / (nx * ny) as f64;
+    assert_eq!(all[0].nodes, nx * ny);
+    assert!((all[0].mean - expect).abs() < 1e-6 * expect);
+}
