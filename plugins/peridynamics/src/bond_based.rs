@@ -402,34 +402,14 @@ fn check_modulus_range(key: &str, name: &str, e: f64) -> Result<(), StageError> 
 /// (the stencil sums of the bond law, Cauchy's C_1212 = C_1122): 1 for an isotropic lattice,
 /// 0 where no bond is diagonal (no shear stiffness).
 pub fn lattice_zener_ratio(h: f64, dim3: bool) -> f64 {
-    let r = h.floor() as i64;
-    let (mut c11, mut c12) = (0.0, 0.0);
-    let zs = if dim3 { -r..=r } else { 0..=0 };
-    for z in zs {
-        for y in -r..=r {
-            for x in -r..=r {
-                let l2 = (x * x + y * y + z * z) as f64;
-                if l2 == 0.0 || l2 > h * h * (1.0 + 1e-9) {
-                    continue;
-                }
-                let l3 = l2 * l2.sqrt();
-                let (x2, y2) = ((x * x) as f64, (y * y) as f64);
-                c11 += x2 * x2 / l3;
-                c12 += x2 * y2 / l3;
-            }
-        }
-    }
+    let (c11, c12) = stencil_sums(h, dim3);
     2.0 * c12 / (c11 - c12)
 }
 
-/// The lattice's uniaxial modulus along an axis over the continuum E of eq. (5) (plane
-/// stress, nu = 1/3 in 2-D; nu = 1/4 in 3-D), from the stencil sums
-/// S11 = sum x^4 / |m|^3, S12 = sum x^2 y^2 / |m|^3 over the integer offsets m within the
-/// horizon: C11, C12 = (c dx^d / 2) S11, S12; E_axis = C11 - C12^2 / C11 in 2-D and
-/// (C11 - C12)(C11 + 2 C12) / (C11 + C12) in 3-D (cubic symmetry). The horizon integrals
-/// give exactly E; at h = 3 the sums give 1.0644 (2-D) and 0.9974 (3-D, where K is 1.121
-/// and nu 0.25 -> 0.28 instead: the calibration matches E only).
-pub fn lattice_modulus_ratio(h: f64, dim3: bool) -> f64 {
+/// The stencil sums S11 = sum x^4 / |m|^3 and S12 = sum x^2 y^2 / |m|^3 over the integer
+/// offsets m within a horizon of `h` voxel edges (the lattice's C11, C12 up to the factor
+/// c dx^d / 2 of the bond law).
+fn stencil_sums(h: f64, dim3: bool) -> (f64, f64) {
     let r = h.floor() as i64;
     let (mut s11, mut s12) = (0.0, 0.0);
     let zs = if dim3 { -r..=r } else { 0..=0 };
@@ -447,6 +427,18 @@ pub fn lattice_modulus_ratio(h: f64, dim3: bool) -> f64 {
             }
         }
     }
+    (s11, s12)
+}
+
+/// The lattice's uniaxial modulus along an axis over the continuum E of eq. (5) (plane
+/// stress, nu = 1/3 in 2-D; nu = 1/4 in 3-D), from the stencil sums
+/// S11 = sum x^4 / |m|^3, S12 = sum x^2 y^2 / |m|^3 over the integer offsets m within the
+/// horizon: C11, C12 = (c dx^d / 2) S11, S12; E_axis = C11 - C12^2 / C11 in 2-D and
+/// (C11 - C12)(C11 + 2 C12) / (C11 + C12) in 3-D (cubic symmetry). The horizon integrals
+/// give exactly E; at h = 3 the sums give 1.0644 (2-D) and 0.9974 (3-D, where K is 1.121
+/// and nu 0.25 -> 0.28 instead: the calibration matches E only).
+pub fn lattice_modulus_ratio(h: f64, dim3: bool) -> f64 {
+    let (s11, s12) = stencil_sums(h, dim3);
     // c dx^d / 2 per unit E: 2-D c dx^4 = 9 E dx / (pi H^3); 3-D c dx^4 = 12 E / (pi H^4)
     // (eq. (5) with K = 2E/3), per unit thickness resp. volume.
     let k = if dim3 {
