@@ -87,7 +87,11 @@ fn range_of(v: &[f64], log: bool, pad: f64) -> (f64, f64) {
         return if log { (0.1, 1.0) } else { (0.0, 1.0) };
     }
     if log {
-        let (lo, hi) = if hi > lo { (lo, hi) } else { (lo / 2.0, hi * 2.0) };
+        let (lo, hi) = if hi > lo {
+            (lo, hi)
+        } else {
+            (lo / 2.0, hi * 2.0)
+        };
         let f = (hi / lo).powf(pad);
         return (lo / f, hi * f);
     }
@@ -121,7 +125,11 @@ impl Figure {
             }
         }
         ys.extend(self.hlines.iter().map(|h| h.y));
-        let mut x = range_of(&xs, self.x_log, if self.bars.is_empty() { 0.06 } else { 0.0 });
+        let mut x = range_of(
+            &xs,
+            self.x_log,
+            if self.bars.is_empty() { 0.06 } else { 0.0 },
+        );
         if !self.categories.is_empty() {
             x = (-0.6, self.categories.len() as f64 - 0.4);
         }
@@ -220,7 +228,8 @@ impl Figure {
     {
         let e = |x: DrawingAreaErrorKind<DB::ErrorType>| x.to_string();
         let mut b = ChartBuilder::on(root);
-        b.margin(10).margin_right(if self.secondary.is_some() { 4 } else { 16 });
+        b.margin(10)
+            .margin_right(if self.secondary.is_some() { 4 } else { 16 });
         if text {
             if !self.title.is_empty() {
                 b.caption(&self.title, (style::FONT, style::TITLE_SIZE));
@@ -423,8 +432,8 @@ impl Figure {
             } else {
                 mesh.x_labels(0).y_labels(0);
             }
-            mesh.light_line_style(color(style::GRID))
-                .bold_line_style(color(style::GRID).mix(0.9))
+            mesh.light_line_style(WHITE.mix(0.0))
+                .bold_line_style(color(style::GRID))
                 .axis_style(ink)
                 .draw()
                 .map_err(e)?;
@@ -433,9 +442,11 @@ impl Figure {
         let base = if y_log { y0 } else { y0.max(0.0) };
         let bar = color(style::PALETTE[1]);
         chart
-            .draw_series(self.bars.iter().map(|&(a, b, h)| {
-                Rectangle::new([(a, base), (b, h)], bar.mix(0.85).filled())
-            }))
+            .draw_series(
+                self.bars
+                    .iter()
+                    .map(|&(a, b, h)| Rectangle::new([(a, base), (b, h)], bar.mix(0.85).filled())),
+            )
             .map_err(e)?;
         chart
             .draw_series(self.bars.iter().map(|&(a, b, h)| {
@@ -522,7 +533,11 @@ where
             chart
                 .draw_series(pts.iter().map(|&p| {
                     EmptyElement::at(p)
-                        + Circle::new((0, 0), r, if hollow { WHITE.filled() } else { col.filled() })
+                        + Circle::new(
+                            (0, 0),
+                            r,
+                            if hollow { WHITE.filled() } else { col.filled() },
+                        )
                         + Circle::new((0, 0), r, col.stroke_width(1))
                 }))
                 .map_err(e)?;

@@ -59,7 +59,10 @@ pub fn frame(s: &Slice) -> Result<(String, (u32, u32), PlotArea), String> {
             .margin_right(RIGHT)
             .x_label_area_size(BOTTOM)
             .y_label_area_size(LEFT)
-            .build_cartesian_2d(0.0..ex.max(f64::MIN_POSITIVE), 0.0..ey.max(f64::MIN_POSITIVE))
+            .build_cartesian_2d(
+                0.0..ex.max(f64::MIN_POSITIVE),
+                0.0..ey.max(f64::MIN_POSITIVE),
+            )
             .map_err(e)?;
         chart
             .configure_mesh()
@@ -106,7 +109,10 @@ pub fn frame(s: &Slice) -> Result<(String, (u32, u32), PlotArea), String> {
                 let (a, b) = (k as f64 / n as f64, (k + 1) as f64 / n as f64);
                 let [r, g, bl] = style::viridis((a + b) / 2.0);
                 Rectangle::new(
-                    [(0.0, cb.lo + a * (hi - cb.lo)), (1.0, cb.lo + b * (hi - cb.lo))],
+                    [
+                        (0.0, cb.lo + a * (hi - cb.lo)),
+                        (1.0, cb.lo + b * (hi - cb.lo)),
+                    ],
                     RGBColor(r, g, bl).filled(),
                 )
             }))

@@ -55,12 +55,8 @@ pub fn font_available() -> bool {
             if let Ok(bytes) = std::fs::read(p) {
                 // plotters keeps fonts for the life of the process.
                 let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                if plotters::style::register_font(
-                    FONT,
-                    plotters::style::FontStyle::Normal,
-                    bytes,
-                )
-                .is_ok()
+                if plotters::style::register_font(FONT, plotters::style::FontStyle::Normal, bytes)
+                    .is_ok()
                 {
                     return true;
                 }

@@ -73,7 +73,11 @@ pub fn violin(values: &[f64], at: f64, half: f64) -> Vec<(f64, f64)> {
         let w = 0.75 * half;
         return vec![(at - w, y), (at + w, y), (at + w, y), (at - w, y)];
     };
-    let top = dens.iter().copied().fold(0.0, f64::max).max(f64::MIN_POSITIVE);
+    let top = dens
+        .iter()
+        .copied()
+        .fold(0.0, f64::max)
+        .max(f64::MIN_POSITIVE);
     let mut poly: Vec<(f64, f64)> = ys
         .iter()
         .zip(&dens)
@@ -122,7 +126,7 @@ pub fn violins(title: &str, y_label: &str, groups: &[Group]) -> Figure {
         x_label: String::new(),
         y_label: y_label.into(),
         categories: groups.iter().map(|g| g.label.clone()).collect(),
-        size: Some(((130 * groups.len() as u32 + 110).clamp(300, 1100), 320)),
+        size: Some(((210 * groups.len() as u32 + 110).clamp(420, 1100), 320)),
         ..Default::default()
     };
     let mut dots = Series {
@@ -148,10 +152,9 @@ pub fn violins(title: &str, y_label: &str, groups: &[Group]) -> Figure {
             hi = hi.max(v);
         }
         means.points.push((at, g.mean));
-        let ci = g
-            .ci
-            .filter(|c| c.0.is_finite() && c.1.is_finite())
-            .unwrap_or((f64::NAN, f64::NAN));
+        let ci =
+            g.ci.filter(|c| c.0.is_finite() && c.1.is_finite())
+                .unwrap_or((f64::NAN, f64::NAN));
         if ci.0.is_finite() {
             lo = lo.min(ci.0);
             hi = hi.max(ci.1);
@@ -167,7 +170,10 @@ pub fn violins(title: &str, y_label: &str, groups: &[Group]) -> Figure {
 
 /// Violins of (label, sample) groups with their means (no intervals).
 pub fn violin_figure(title: &str, y_label: &str, groups: &[(String, Vec<f64>)]) -> Figure {
-    let g: Vec<Group> = groups.iter().map(|(l, v)| Group::new(l, v.clone())).collect();
+    let g: Vec<Group> = groups
+        .iter()
+        .map(|(l, v)| Group::new(l, v.clone()))
+        .collect();
     violins(title, y_label, &g)
 }
 

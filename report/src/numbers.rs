@@ -77,7 +77,9 @@ pub fn invert(c: &M6) -> Option<M6> {
         return None;
     }
     let inv = lu.try_inverse()?;
-    Some(std::array::from_fn(|i| std::array::from_fn(|j| inv[(i, j)])))
+    Some(std::array::from_fn(|i| {
+        std::array::from_fn(|j| inv[(i, j)])
+    }))
 }
 
 /// Names of [`engineering`]'s values, as in `elasticity.fft`'s `constants` table.

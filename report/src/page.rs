@@ -965,9 +965,8 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
         ));
     }
     if !exported.is_empty() {
-        let mut t = String::from(
-            "<p class=\"note\">The PNG files the run exported, as written.</p>",
-        );
+        let mut t =
+            String::from("<p class=\"note\">The PNG files the run exported, as written.</p>");
         for (e, png) in &exported {
             let (w, h) = png_size(png).unwrap_or((560, 400));
             let _ = write!(
@@ -1228,7 +1227,10 @@ mod tests {
             col("cumulative", &[0.2, 0.7, 1.0]),
         ];
         let svg = super::distribution_chart("local_thickness", &columns, 3).unwrap();
-        assert!(svg.starts_with("<svg class=\"chart histogram\" data-bars=\"3\""), "{svg}");
+        assert!(
+            svg.starts_with("<svg class=\"chart histogram\" data-bars=\"3\""),
+            "{svg}"
+        );
         assert!(svg.contains("polyline") && svg.contains("µm"));
         assert!(svg.contains("cumulative volume [%]"));
         assert!(super::distribution_chart("phases", &columns, 3).is_none());

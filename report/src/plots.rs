@@ -59,7 +59,11 @@ pub fn histogram(
         size: Some((600, 280)),
         ..Default::default()
     };
-    svg(&f, "chart histogram", &[("data-bars", counts.len().to_string())])
+    svg(
+        &f,
+        "chart histogram",
+        &[("data-bars", counts.len().to_string())],
+    )
 }
 
 fn numbers(c: &Col) -> Vec<f64> {
@@ -77,7 +81,12 @@ fn strings(c: &Col) -> Option<Vec<String>> {
 }
 
 /// Points of `y` against `x`, one series per value of `group` (in order of appearance).
-fn grouped(x: &[f64], y: &[f64], group: Option<&[String]>, keep: &dyn Fn(f64) -> bool) -> Vec<Series> {
+fn grouped(
+    x: &[f64],
+    y: &[f64],
+    group: Option<&[String]>,
+    keep: &dyn Fn(f64) -> bool,
+) -> Vec<Series> {
     let mut out: Vec<Series> = vec![];
     for i in 0..x.len().min(y.len()) {
         if !x[i].is_finite() || !keep(y[i]) {
@@ -109,10 +118,7 @@ fn grouped(x: &[f64], y: &[f64], group: Option<&[String]>, keep: &dyn Fn(f64) ->
 /// line per load case or direction; the energy of a peridynamics solve; the overlap energy of
 /// each MCM phase; temperatures and bonds of a sintering run against time.
 pub fn history_charts(it: &Item, tolerance: Option<f64>) -> Vec<String> {
-    let Body::Table {
-        columns, curve, ..
-    } = &it.body
-    else {
+    let Body::Table { columns, curve, .. } = &it.body else {
         return vec![];
     };
     let cols = curve.as_ref().unwrap_or(columns);
@@ -148,7 +154,10 @@ pub fn history_charts(it: &Item, tolerance: Option<f64>) -> Vec<String> {
         out.push(svg(
             &f,
             "chart convergence",
-            &[("data-y-scale", "log".into()), ("data-source", it.source.clone())],
+            &[
+                ("data-y-scale", "log".into()),
+                ("data-source", it.source.clone()),
+            ],
         ));
     }
     if let (Some(en), Some(itc)) = (col("energy"), col("iteration")) {
@@ -159,7 +168,11 @@ pub fn history_charts(it: &Item, tolerance: Option<f64>) -> Vec<String> {
             series: grouped(&numbers(itc), &numbers(en), group, &f64::is_finite),
             ..Default::default()
         };
-        out.push(svg(&f, "chart history", &[("data-source", it.source.clone())]));
+        out.push(svg(
+            &f,
+            "chart history",
+            &[("data-source", it.source.clone())],
+        ));
     }
     if let Some(ov) = col("overlap_energy") {
         let f = Figure {
@@ -173,7 +186,10 @@ pub fn history_charts(it: &Item, tolerance: Option<f64>) -> Vec<String> {
         out.push(svg(
             &f,
             "chart convergence",
-            &[("data-y-scale", "log".into()), ("data-source", it.source.clone())],
+            &[
+                ("data-y-scale", "log".into()),
+                ("data-source", it.source.clone()),
+            ],
         ));
     }
     if let Some(t) = col("time") {
@@ -212,7 +228,10 @@ pub fn history_charts(it: &Item, tolerance: Option<f64>) -> Vec<String> {
                 )
             })
         };
-        out.extend(over_time(&["max_temperature", "mean_temperature"], "temperature"));
+        out.extend(over_time(
+            &["max_temperature", "mean_temperature"],
+            "temperature",
+        ));
         out.extend(over_time(&["bonds"], "bonds"));
         out.extend(over_time(
             &["bonded_fraction", "bonded_particle_fraction"],
@@ -286,7 +305,10 @@ pub fn violins(label: &str, groups: &[grainpipe_charts::Group]) -> String {
         "violin",
         &[
             ("data-violins", groups.len().to_string()),
-            ("data-y-range", format!("{} {}", style::tick(lo), style::tick(hi))),
+            (
+                "data-y-range",
+                format!("{} {}", style::tick(lo), style::tick(hi)),
+            ),
         ],
     )
 }
@@ -315,12 +337,19 @@ mod tests {
                 curve: Some(vec![
                     col(
                         "load_case",
-                        (0..2 * n).map(|i| if i < n { "xx" } else { "yy" }.into()).collect(),
+                        (0..2 * n)
+                            .map(|i| if i < n { "xx" } else { "yy" }.into())
+                            .collect(),
                     ),
-                    col("iteration", (0..2 * n).map(|i| ((i % n) as i64).into()).collect()),
+                    col(
+                        "iteration",
+                        (0..2 * n).map(|i| ((i % n) as i64).into()).collect(),
+                    ),
                     col(
                         "residual",
-                        (0..2 * n).map(|i| 0.5f64.powi((i % n) as i32).into()).collect(),
+                        (0..2 * n)
+                            .map(|i| 0.5f64.powi((i % n) as i32).into())
+                            .collect(),
                     ),
                 ]),
             },
@@ -333,7 +362,10 @@ mod tests {
         // One line per load case, both named in the legend.
         assert!(c.contains(">\nxx\n<") || c.contains("xx"));
         assert!(c.contains("yy"));
-        assert_eq!(tolerance(&serde_json::json!({"tolerance": 1e-4})), Some(1e-4));
+        assert_eq!(
+            tolerance(&serde_json::json!({"tolerance": 1e-4})),
+            Some(1e-4)
+        );
     }
 
     #[test]

@@ -65,7 +65,12 @@ fn component_names(dir: &Path) -> HashMap<String, String> {
         else {
             continue;
         };
-        for x in v.get("values").and_then(|x| x.as_array()).into_iter().flatten() {
+        for x in v
+            .get("values")
+            .and_then(|x| x.as_array())
+            .into_iter()
+            .flatten()
+        {
             if let (Some(n), Some(c)) = (
                 x.get("name").and_then(|n| n.as_str()),
                 x.get("component").and_then(|c| c.as_str()),
@@ -251,7 +256,10 @@ fn charts_section(dir: &Path) -> String {
         .flatten()
         .map(|e| e.path())
         .filter(|p| {
-            let n = p.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            let n = p
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
             n.ends_with(".svg") && !n.starts_with("violin_") && !n.starts_with('.')
         })
         .collect();
@@ -290,10 +298,9 @@ fn study_section(dir: &Path) -> String {
         }
     };
     let chosen = match j.get("chosen_level") {
-        Some(serde_json::Value::String(s)) => format!(
-            "<span class=\"ok\" id=\"chosen-level\">{}</span>",
-            esc(s)
-        ),
+        Some(serde_json::Value::String(s)) => {
+            format!("<span class=\"ok\" id=\"chosen-level\">{}</span>", esc(s))
+        }
         _ => "<span class=\"warn\" id=\"chosen-level\">none meets the target error</span>".into(),
     };
     let ev = j.get("evidence").filter(|e| !e.is_null());
@@ -349,7 +356,8 @@ pub fn sweep_page(dir: &Path, s: &Sweep) -> String {
     };
     let charts_html = charts_section(dir);
     let study_html = study_section(dir);
-    let mut body = format!(
+    let mut body =
+        format!(
         "<header id=\"top\"><h1>{}</h1><nav><a href=\"#summary\">Summary</a><a href=\"#violins\">\
          Distributions</a>{}{}<a href=\"#intervals\">Confidence intervals</a>\
          <a href=\"#runs\">Runs</a></nav></header>",
@@ -404,7 +412,10 @@ pub fn sweep_page(dir: &Path, s: &Sweep) -> String {
                     label: format!("{g} (n = {})", sample.len()),
                     values: sample,
                     mean: m.mean,
-                    ci: m.ci90.is_finite().then(|| (m.mean - m.ci90, m.mean + m.ci90)),
+                    ci: m
+                        .ci90
+                        .is_finite()
+                        .then(|| (m.mean - m.ci90, m.mean + m.ci90)),
                 })
             })
             .collect();

@@ -88,7 +88,14 @@ fn keep(files: &[&Path]) {
         let d = PathBuf::from(d);
         std::fs::create_dir_all(&d).unwrap();
         for f in files {
-            let _ = std::fs::copy(f, d.join(f.file_name().unwrap()));
+            // run/report.html -> run-report.html
+            let parent = f.parent().and_then(|p| p.file_name()).unwrap_or_default();
+            let name = format!(
+                "{}-{}",
+                parent.to_string_lossy(),
+                f.file_name().unwrap().to_string_lossy()
+            );
+            let _ = std::fs::copy(f, d.join(name));
         }
     }
 }
@@ -265,7 +272,13 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
             "residual",
             "",
             (0..100)
-                .map(|i| if i < 50 { 0.7f64.powi(i) } else { 0.6f64.powi(i - 50) })
+                .map(|i| {
+                    if i < 50 {
+                        0.7f64.powi(i)
+                    } else {
+                        0.6f64.powi(i - 50)
+                    }
+                })
                 .collect(),
         );
     let mut pics = vec![];
@@ -417,7 +430,10 @@ fn run_report_in_a_browser() {
     let conv = &conv[..conv.find("</svg>").unwrap()];
     assert!(conv.contains("tolerance 1e-6"), "tolerance line");
     assert!(conv.contains("xx") && conv.contains("yy"), "load cases");
-    assert!(conv.contains("1e-6") && conv.contains("iteration"), "log ticks");
+    assert!(
+        conv.contains("1e-6") && conv.contains("iteration"),
+        "log ticks"
+    );
     // Issue 36: every slice and rendering framed with axes in µm and a scale bar; fields
     // with a colour bar in their unit.
     assert_eq!(html.matches("<svg class=\"slice-axes\"").count(), 14);
@@ -465,7 +481,10 @@ fn run_report_in_a_browser() {
     );
     assert!(dom.contains("data-y-scale=\"log\""), "log residual axis");
     assert!(dom.contains("class=\"slice-axes\""), "slice axes");
-    assert!(dom.contains("bonds_top.png (from sinter.bonds)"), "exported PNG");
+    assert!(
+        dom.contains("bonds_top.png (from sinter.bonds)"),
+        "exported PNG"
+    );
     check_screenshot(&shot);
 }
 
@@ -520,7 +539,8 @@ fn sweep_report_and_html_export_in_a_browser() {
         }],
         ..Default::default()
     };
-    mean.save(&dir.join("charts/E_x_vs_binder_fraction")).unwrap();
+    mean.save(&dir.join("charts/E_x_vs_binder_fraction"))
+        .unwrap();
     std::fs::write(
         dir.join("study.json"),
         r#"{"parameter":"binder_fraction","metric":"E_x","levels":["0.02","0.04"],
@@ -555,7 +575,11 @@ fn sweep_report_and_html_export_in_a_browser() {
         .split("</div>")
         .next()
         .unwrap();
-    assert_eq!(ex.matches("<svg").count(), 1, "one chart for the violins of E_x");
+    assert_eq!(
+        ex.matches("<svg").count(),
+        1,
+        "one chart for the violins of E_x"
+    );
     assert_eq!(ex.matches("<polygon").count(), 2, "two violins in it");
     // The shared y range holds every value of both points (4.0e9 .. 5.5e9).
     let range = attr(ex, "data-y-range").unwrap();
@@ -603,6 +627,7 @@ fn sweep_report_and_html_export_in_a_browser() {
         &tmp.path().join("sweep.png"),
         &tmp.path().join("profile"),
     );
+    keep(&[&page]);
     for id in ["summary", "violins", "charts", "study", "intervals", "runs"] {
         assert!(
             dom.contains(&format!("<section id=\"{id}\"")),
