@@ -118,7 +118,7 @@ pub fn tick(x: f64) -> String {
 
 /// Tick text of a log axis: `1e-6`, `1e2`, or the plain value between 0.01 and 1000.
 pub fn log_tick(x: f64) -> String {
-    if !(x > 0.0) || !x.is_finite() {
+    if !(x.is_finite() && x > 0.0) {
         return String::new();
     }
     let e = x.log10().round();
@@ -155,7 +155,7 @@ pub fn pretty_unit(unit: &str) -> String {
 
 /// The "nice" step (1, 2 or 5 times a power of ten) that cuts `span` into about `n` parts.
 pub fn nice_step(span: f64, n: usize) -> f64 {
-    if !(span > 0.0) || !span.is_finite() {
+    if !(span.is_finite() && span > 0.0) {
         return 1.0;
     }
     let raw = span / n.max(1) as f64;
@@ -175,7 +175,7 @@ pub fn nice_step(span: f64, n: usize) -> f64 {
 
 /// Tick positions: the multiples of [`nice_step`] inside [lo, hi].
 pub fn ticks(lo: f64, hi: f64, n: usize) -> Vec<f64> {
-    if !(hi > lo) {
+    if hi.partial_cmp(&lo) != Some(std::cmp::Ordering::Greater) {
         return vec![lo];
     }
     let s = nice_step(hi - lo, n);
@@ -215,7 +215,7 @@ pub fn nice_range(lo: f64, hi: f64, n: usize) -> (f64, f64) {
 /// The length of a scale bar for a picture `extent` wide: the nice length (1, 2 or 5 times a
 /// power of ten) closest below a fifth of the width.
 pub fn scale_bar(extent: f64) -> f64 {
-    if !(extent > 0.0) || !extent.is_finite() {
+    if !(extent.is_finite() && extent > 0.0) {
         return 0.0;
     }
     let target = extent / 5.0;

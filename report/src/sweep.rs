@@ -415,7 +415,7 @@ pub fn sweep_page(dir: &Path, s: &Sweep) -> String {
                     ci: m
                         .ci90
                         .is_finite()
-                        .then(|| (m.mean - m.ci90, m.mean + m.ci90)),
+                        .then_some((m.mean - m.ci90, m.mean + m.ci90)),
                 })
             })
             .collect();

@@ -560,7 +560,10 @@ mod tests {
         assert_eq!(component_name(&k, 0), "kappa_xx");
         assert_eq!(component_name(&k, 5), "kappa_yz");
         assert_eq!(component_name(&k, 8), "kappa_zz");
-        assert_eq!(component_name(&tensor("conductivity", vec![3, 3]), 4), "k_yy");
+        assert_eq!(
+            component_name(&tensor("conductivity", vec![3, 3]), 4),
+            "k_yy"
+        );
         assert_eq!(component_name(&tensor("stiffness", vec![6, 6]), 7), "C_22");
         assert_eq!(component_name(&tensor("fabric", vec![3]), 2), "fabric_z");
         // Stored only when known: result.json of values without a name read back.
