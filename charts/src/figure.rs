@@ -663,7 +663,8 @@ impl DrawingBackend for InlineSvg<'_> {
     ) -> Result<(u32, u32), DrawingErrorKind<Self::ErrorType>> {
         // plotters' size is the glyph box height; the em is size / 1.24 (as its SVG writes).
         let em = style.size() / 1.24;
-        let w: f64 = text.chars().map(em_width).sum::<f64>() * em;
+        // A little generous: text that overflows its box looks worse than a loose box.
+        let w: f64 = 1.08 * text.chars().map(em_width).sum::<f64>() * em;
         let (w, h) = (w.ceil() as u32, em.ceil() as u32);
         Ok(match style.transform() {
             plotters_backend::FontTransform::Rotate90

@@ -67,8 +67,9 @@ pub fn frame(s: &Slice) -> Result<(String, (u32, u32), PlotArea), String> {
         chart
             .configure_mesh()
             .disable_mesh()
-            .x_labels(5)
-            .y_labels(5)
+            // Fewer labels on a narrow or flat picture (a thin bed seen from the side).
+            .x_labels((s.width / 60).clamp(2, 5) as usize)
+            .y_labels((s.height / 40).clamp(2, 5) as usize)
             .x_desc(format!("{} [µm]", s.axes.0))
             .y_desc(format!("{} [µm]", s.axes.1))
             .x_label_formatter(&|x: &f64| style::tick(*x))

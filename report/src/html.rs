@@ -125,6 +125,7 @@ figcaption{font-size:.85em;color:#444;max-width:360px}
 img.pic{image-rendering:pixelated;border:1px solid #bbb;background:#fff}
 .frame{position:relative}.frame img.pic{position:absolute;border:0}.frame svg{position:absolute;left:0;top:0}
 figure.slice figcaption{max-width:460px}
+#pictures img.pic{image-rendering:auto}
 svg.violin,svg.chart{display:block;margin:.4em 0}
 .legend span.sw{display:inline-block;width:1em;height:1em;border:1px solid #888;vertical-align:middle;margin:0 .3em 0 1em}
 .cbar{display:inline-block;width:220px;height:12px;border:1px solid #888;vertical-align:middle;margin:0 .5em}
