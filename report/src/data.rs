@@ -12,6 +12,8 @@ use serde::{Deserialize, Serialize};
 pub const MAX_TABLE_ROWS: usize = 40;
 /// Members of a collection the report shows (30 grains would drown the page).
 pub const MAX_MEMBERS: usize = 4;
+/// Rows of a history table kept for its plot.
+pub const MAX_CURVE_ROWS: usize = 2000;
 /// Pixels along the longer side of a packing rendering.
 const RENDER_SIZE: usize = 360;
 
@@ -118,6 +120,10 @@ pub enum Body {
         name: String,
         rows: usize,
         columns: Vec<Col>,
+        /// A history table (convergence, time steps) whole, or every k-th row of it and its
+        /// last (at most [`MAX_CURVE_ROWS`]): what the page plots.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        curve: Option<Vec<Col>>,
     },
     Tensor {
         name: String,
@@ -358,28 +364,39 @@ pub fn item(source: &str, a: &Artifact, pics: &mut Pictures) -> Item {
                 let h = MAX_TABLE_ROWS / 2;
                 (0..h).chain(rows - h..rows).collect()
             };
-            let columns = t
-                .columns
-                .iter()
-                .map(|c| Col {
-                    name: c.name.clone(),
-                    unit: c.unit.clone(),
-                    values: keep
-                        .iter()
-                        .map(|&i| match &c.data {
-                            ColumnData::F64(v) => serde_json::Number::from_f64(v[i])
-                                .map(serde_json::Value::Number)
-                                .unwrap_or(serde_json::Value::Null),
-                            ColumnData::I64(v) => v[i].into(),
-                            ColumnData::Str(v) => v[i].clone().into(),
-                        })
-                        .collect(),
-                })
-                .collect();
+            let cols = |keep: &[usize]| -> Vec<Col> {
+                t.columns
+                    .iter()
+                    .map(|c| Col {
+                        name: c.name.clone(),
+                        unit: c.unit.clone(),
+                        values: keep
+                            .iter()
+                            .map(|&i| match &c.data {
+                                ColumnData::F64(v) => serde_json::Number::from_f64(v[i])
+                                    .map(serde_json::Value::Number)
+                                    .unwrap_or(serde_json::Value::Null),
+                                ColumnData::I64(v) => v[i].into(),
+                                ColumnData::Str(v) => v[i].clone().into(),
+                            })
+                            .collect(),
+                    })
+                    .collect()
+            };
+            // Histories longer than the shown rows keep a thinned copy for their plot.
+            let curve = (t.name.contains("history") && rows > keep.len()).then(|| {
+                let stride = rows.div_ceil(MAX_CURVE_ROWS).max(1);
+                let mut rows_kept: Vec<usize> = (0..rows).step_by(stride).collect();
+                if rows_kept.last() != Some(&(rows - 1)) {
+                    rows_kept.push(rows - 1);
+                }
+                cols(&rows_kept)
+            });
             Body::Table {
                 name: t.name.clone(),
                 rows,
-                columns,
+                columns: cols(&keep),
+                curve,
             }
         }
         Artifact::Tensor(t) => Body::Tensor {

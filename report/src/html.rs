@@ -1,5 +1,5 @@
 //! HTML building blocks: escaping, number and unit formatting, the page frame with its
-//! style sheet, embedded PNGs, tables and inline SVG charts. Everything is inline so a page
+//! style sheet, embedded PNGs and tables (charts: [`crate::plots`]). Everything is inline so a page
 //! opens from disk, offline, in any browser.
 
 use base64::Engine;
@@ -87,6 +87,17 @@ pub fn img(png: &[u8], alt: &str, width: usize, height: usize, css_width: usize)
     )
 }
 
+/// A PNG as an `<img>` placed at (left, top) with the given CSS size inside a positioned
+/// frame (a slice under its axes).
+pub fn img_at(png: &[u8], alt: &str, left: i32, top: i32, width: i32, height: i32) -> String {
+    let b64 = base64::engine::general_purpose::STANDARD.encode(png);
+    format!(
+        "<img src=\"data:image/png;base64,{b64}\" alt=\"{}\" width=\"{width}\" \
+         height=\"{height}\" class=\"pic\" style=\"left:{left}px;top:{top}px\">",
+        esc(alt)
+    )
+}
+
 /// The page frame: title, style sheet, body, and a script that marks the document with
 /// `data-images-ok` once every image has decoded (what the browser test reads back).
 pub fn page(title: &str, body: &str) -> String {
@@ -112,6 +123,10 @@ caption{caption-side:bottom;text-align:left;font-size:.85em;color:#555;padding-t
 figure{display:inline-block;margin:.4em 1em .8em 0;vertical-align:top}
 figcaption{font-size:.85em;color:#444;max-width:360px}
 img.pic{image-rendering:pixelated;border:1px solid #bbb;background:#fff}
+.frame{position:relative}.frame img.pic{position:absolute;border:0}.frame svg{position:absolute;left:0;top:0}
+figure.slice figcaption{max-width:460px}
+#pictures img.pic{image-rendering:auto}
+svg.violin,svg.chart{display:block;margin:.4em 0}
 .legend span.sw{display:inline-block;width:1em;height:1em;border:1px solid #888;vertical-align:middle;margin:0 .3em 0 1em}
 .cbar{display:inline-block;width:220px;height:12px;border:1px solid #888;vertical-align:middle;margin:0 .5em}
 .note{color:#555;font-size:.9em}
@@ -174,236 +189,6 @@ pub fn kv(rows: &[(&str, String)]) -> String {
     }
     s.push_str("</tbody></table>");
     s
-}
-
-/// A histogram as inline SVG: bars of `counts` over `edges` (in display units), with an
-/// optional cumulative curve in percent on the right axis.
-pub fn histogram_svg(
-    edges: &[f64],
-    counts: &[f64],
-    cumulative: Option<&[f64]>,
-    xlabel: &str,
-    ylabel: &str,
-) -> String {
-    let (w, h, l, r, t, b) = (560.0, 260.0, 60.0, 50.0, 12.0, 42.0);
-    let pw = w - l - r;
-    let ph = h - t - b;
-    let (x0, x1) = (edges[0], edges[edges.len() - 1]);
-    let xs = |x: f64| l + (x - x0) / (x1 - x0).max(f64::MIN_POSITIVE) * pw;
-    let ymax = counts
-        .iter()
-        .copied()
-        .fold(0.0, f64::max)
-        .max(f64::MIN_POSITIVE);
-    let ys = |y: f64| t + ph - y / ymax * ph;
-    let mut s = format!(
-        "<svg class=\"chart\" width=\"{w}\" height=\"{h}\" viewBox=\"0 0 {w} {h}\" \
-         xmlns=\"http://www.w3.org/2000/svg\" role=\"img\">"
-    );
-    for (k, c) in counts.iter().enumerate() {
-        let (a, bb) = (xs(edges[k]), xs(edges[k + 1]));
-        let _ = write!(
-            s,
-            "<rect x=\"{a:.1}\" y=\"{:.1}\" width=\"{:.1}\" height=\"{:.1}\" fill=\"#d6a65c\" \
-             stroke=\"#8a6a3a\" stroke-width=\"0.5\"/>",
-            ys(*c),
-            (bb - a).max(0.5),
-            t + ph - ys(*c)
-        );
-    }
-    if let Some(cum) = cumulative {
-        let pts: Vec<String> = cum
-            .iter()
-            .enumerate()
-            .map(|(k, c)| format!("{:.1},{:.1}", xs(edges[k + 1]), t + ph - c / 100.0 * ph))
-            .collect();
-        let _ = write!(
-            s,
-            "<polyline points=\"{:.1},{:.1} {}\" fill=\"none\" stroke=\"#2e68b4\" stroke-width=\"2\"/>",
-            xs(edges[0]),
-            t + ph,
-            pts.join(" ")
-        );
-        for k in 0..=4 {
-            let y = t + ph - k as f64 / 4.0 * ph;
-            let _ = write!(
-                s,
-                "<text x=\"{:.1}\" y=\"{:.1}\" font-size=\"11\" fill=\"#2e68b4\">{}</text>",
-                l + pw + 4.0,
-                y + 4.0,
-                k * 25
-            );
-        }
-        let _ = write!(
-            s,
-            "<text x=\"{:.1}\" y=\"{:.1}\" font-size=\"11\" fill=\"#2e68b4\" transform=\"rotate(90 {:.1} {:.1})\">cumulative volume [%]</text>",
-            w - 8.0,
-            t + 20.0,
-            w - 8.0,
-            t + 20.0
-        );
-    }
-    axes(&mut s, l, t, pw, ph, (x0, x1), (0.0, ymax), xlabel, ylabel);
-    s.push_str("</svg>");
-    s
-}
-
-/// Axes with ticks for a chart whose plot area is (l, t, pw, ph).
-#[allow(clippy::too_many_arguments)]
-fn axes(
-    s: &mut String,
-    l: f64,
-    t: f64,
-    pw: f64,
-    ph: f64,
-    (x0, x1): (f64, f64),
-    (y0, y1): (f64, f64),
-    xlabel: &str,
-    ylabel: &str,
-) {
-    let _ = write!(
-        s,
-        "<path d=\"M{l},{t} V{} H{}\" fill=\"none\" stroke=\"#333\"/>",
-        t + ph,
-        l + pw
-    );
-    for k in 0..=4 {
-        let f = k as f64 / 4.0;
-        let x = l + f * pw;
-        let _ = write!(
-            s,
-            "<text x=\"{x:.1}\" y=\"{:.1}\" font-size=\"11\" text-anchor=\"middle\">{}</text>",
-            t + ph + 15.0,
-            plain(x0 + f * (x1 - x0))
-        );
-        let y = t + ph - f * ph;
-        let _ = write!(
-            s,
-            "<text x=\"{:.1}\" y=\"{:.1}\" font-size=\"11\" text-anchor=\"end\">{}</text>",
-            l - 4.0,
-            y + 4.0,
-            plain(y0 + f * (y1 - y0))
-        );
-    }
-    let _ = write!(
-        s,
-        "<text x=\"{:.1}\" y=\"{:.1}\" font-size=\"12\" text-anchor=\"middle\">{}</text>",
-        l + pw / 2.0,
-        t + ph + 34.0,
-        esc(xlabel)
-    );
-    let _ = write!(
-        s,
-        "<text x=\"14\" y=\"{:.1}\" font-size=\"12\" text-anchor=\"middle\" transform=\"rotate(-90 14 {:.1})\">{}</text>",
-        t + ph / 2.0,
-        t + ph / 2.0,
-        esc(ylabel)
-    );
-}
-
-/// A number for SVG text (no markup).
-pub fn plain(v: f64) -> String {
-    if v == 0.0 {
-        return "0".into();
-    }
-    let a = v.abs();
-    if (1e-2..1e5).contains(&a) {
-        let digits = (2 - a.log10().floor() as i32).max(0) as usize;
-        format!("{v:.digits$}")
-    } else {
-        format!("{v:.2e}")
-    }
-}
-
-/// A violin plot of one sample as inline SVG: the mirrored kernel density, the individual
-/// values as dots, the mean as a bar and its 90 % confidence interval as a whisker.
-pub fn violin_svg(values: &[f64], label: &str) -> String {
-    use crate::numbers::{kde, summary};
-    let (w, h, l, t, b) = (240.0, 300.0, 70.0, 12.0, 34.0);
-    let ph = h - t - b;
-    let s = summary(values);
-    let (lo, hi) = if s.max > s.min {
-        let pad = 0.15 * (s.max - s.min);
-        (s.min - pad, s.max + pad)
-    } else {
-        let pad = if s.mean != 0.0 {
-            0.05 * s.mean.abs()
-        } else {
-            1.0
-        };
-        (s.mean - pad, s.mean + pad)
-    };
-    let ys = |v: f64| t + ph - (v - lo) / (hi - lo) * ph;
-    let cx = l + (w - l) / 2.0 - 5.0;
-    let half = (w - l) / 2.0 - 20.0;
-    let mut o = format!(
-        "<svg class=\"violin\" width=\"{w}\" height=\"{h}\" viewBox=\"0 0 {w} {h}\" \
-         xmlns=\"http://www.w3.org/2000/svg\" role=\"img\">"
-    );
-    let grid: Vec<f64> = (0..=80).map(|k| lo + (hi - lo) * k as f64 / 80.0).collect();
-    if let Some(d) = kde(values, &grid) {
-        let dmax = d.iter().copied().fold(0.0, f64::max).max(f64::MIN_POSITIVE);
-        let mut path = String::new();
-        for (k, (&v, &dv)) in grid.iter().zip(&d).enumerate() {
-            let _ = write!(
-                path,
-                "{}{:.1},{:.1} ",
-                if k == 0 { "M" } else { "L" },
-                cx + dv / dmax * half,
-                ys(v)
-            );
-        }
-        for (&v, &dv) in grid.iter().zip(&d).rev() {
-            let _ = write!(path, "L{:.1},{:.1} ", cx - dv / dmax * half, ys(v));
-        }
-        let _ = write!(
-            o,
-            "<path d=\"{path}Z\" fill=\"#c9daf0\" stroke=\"#2e68b4\" stroke-width=\"1\"/>"
-        );
-    }
-    for v in values.iter().filter(|v| v.is_finite()) {
-        let _ = write!(
-            o,
-            "<circle cx=\"{cx:.1}\" cy=\"{:.1}\" r=\"2.2\" fill=\"#333\" fill-opacity=\"0.6\"/>",
-            ys(*v)
-        );
-    }
-    if s.ci90.is_finite() {
-        let _ = write!(
-            o,
-            "<path d=\"M{:.1},{:.1} V{:.1} M{:.1},{:.1} H{:.1} M{:.1},{:.1} H{:.1}\" stroke=\"#b00020\" stroke-width=\"2\"/>",
-            cx + half * 0.6,
-            ys(s.mean - s.ci90),
-            ys(s.mean + s.ci90),
-            cx + half * 0.6 - 5.0,
-            ys(s.mean - s.ci90),
-            cx + half * 0.6 + 5.0,
-            cx + half * 0.6 - 5.0,
-            ys(s.mean + s.ci90),
-            cx + half * 0.6 + 5.0
-        );
-    }
-    let _ = write!(
-        o,
-        "<path d=\"M{:.1},{:.1} H{:.1}\" stroke=\"#b00020\" stroke-width=\"2.5\"/>",
-        cx - half * 0.4,
-        ys(s.mean),
-        cx + half * 0.4
-    );
-    axes(
-        &mut o,
-        l,
-        t,
-        w - l - 10.0,
-        ph,
-        (f64::NAN, f64::NAN),
-        (lo, hi),
-        label,
-        "",
-    );
-    o.push_str("</svg>");
-    // The x ticks of a violin are meaningless: drop the NaN labels `axes` wrote.
-    o.replace(">NaN</text>", "></text>")
 }
 
 #[cfg(test)]

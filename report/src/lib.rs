@@ -17,6 +17,7 @@ pub mod export;
 pub mod html;
 pub mod numbers;
 pub mod page;
+pub mod plots;
 pub mod raster;
 pub mod record;
 pub mod sweep;
@@ -45,7 +46,22 @@ pub fn register(r: &mut grainpipe_core::Registry) {
 /// Renders the report of a run or sweep directory; returns the page's path.
 pub fn render_dir(dir: &Path, output: Option<&Path>) -> Result<PathBuf, String> {
     let html = if dir.join(record::RUN_FILE).is_file() {
-        let (rec, data, pics) = record::read_run_dir(dir)?;
+        let (rec, data, mut pics) = record::read_run_dir(dir)?;
+        // The PNG exports, found where they were written (relative to the directory `pipe run`
+        // ran in, else to the run directory, else in it by name).
+        for e in rec.exports.iter().filter(|e| e.written) {
+            let p = Path::new(&e.path);
+            let found = [
+                p.to_path_buf(),
+                dir.join(p),
+                dir.join(p.file_name().unwrap_or_default()),
+            ]
+            .into_iter()
+            .find_map(|c| std::fs::read(c).ok());
+            if let Some(b) = found.filter(|_| e.path.to_ascii_lowercase().ends_with(".png")) {
+                pics.insert(page::export_key(&e.path), b);
+            }
+        }
         page::run_page(&rec, &data, &pics)
     } else if dir.join("sweep.csv").is_file() {
         let s = sweep::Sweep::read(dir)?;

@@ -44,6 +44,39 @@ fn figure(p: &Picture, pics: &Pics, css_width: usize) -> String {
     }
 }
 
+/// The horizontal and vertical axes of a picture, from its file name (`stem.xz.png`, a
+/// rendering `stem.side.png`).
+fn picture_axes(p: &Picture) -> Option<(usize, usize)> {
+    match p.file.rsplit('.').nth(1)? {
+        "xy" | "top" => Some((0, 1)),
+        "xz" | "side" => Some((0, 2)),
+        "yz" => Some((1, 2)),
+        _ => None,
+    }
+}
+
+/// A slice or rendering with axes in µm and a scale bar (and a colour bar for fields):
+/// `size` is the physical size of the grid or domain [m].
+fn framed_figure(
+    p: &Picture,
+    pics: &Pics,
+    css_width: usize,
+    size: [f64; 3],
+    colorbar: Option<grainpipe_charts::slice::ColorBar>,
+) -> String {
+    match (pics.get(&p.file), picture_axes(p)) {
+        (Some(png), Some((h, v))) => crate::plots::framed(
+            p,
+            png,
+            css_width,
+            (size[h] * 1e6, size[v] * 1e6),
+            (crate::raster::AXIS[h], crate::raster::AXIS[v]),
+            colorbar,
+        ),
+        _ => figure(p, pics, css_width),
+    }
+}
+
 fn css_width(p: &Picture) -> usize {
     // Upscale small slices so voxels are visible; keep large ones at most 360 px wide.
     let target = 300.0f64.max(p.width as f64).min(360.0);
@@ -85,8 +118,9 @@ pub fn phase_image_html(it: &Item, pics: &Pics) -> String {
         );
     }
     s.push_str("</p>");
+    let size = [0, 1, 2].map(|a| dims[a] as f64 * spacing[a]);
     for p in slices {
-        s.push_str(&figure(p, pics, css_width(p)));
+        s.push_str(&framed_figure(p, pics, css_width(p), size, None));
     }
     s.push_str("</div>");
     s
@@ -100,6 +134,7 @@ pub fn field_html(it: &Item, pics: &Pics) -> String {
         convention,
         quantity,
         dims,
+        spacing,
         min,
         max,
         scale_max,
@@ -114,7 +149,7 @@ pub fn field_html(it: &Item, pics: &Pics) -> String {
     let mut s = format!(
         "<div class=\"field\" data-source=\"{}\"><h3>{} — {}</h3><p>{} component(s) ({}) on \
          {} × {} × {} voxels. Shown: {}, from {} to {} {} (mean {} {}).</p>\
-         <p>{} {u}<span class=\"cbar\" style=\"background:{}\"></span>{}{} {u}</p>",
+         <p>Colour scale: {} {u} to {}{} {u}.</p>",
         esc(&it.source),
         esc(&it.source),
         esc(quantity),
@@ -130,7 +165,6 @@ pub fn field_html(it: &Item, pics: &Pics) -> String {
         num(*mean),
         esc(u),
         num(*min),
-        crate::raster::colormap_css(),
         if scale_max.is_some_and(|t| t < *max) {
             "≥ "
         } else {
@@ -138,8 +172,16 @@ pub fn field_html(it: &Item, pics: &Pics) -> String {
         },
         num(scale_max.unwrap_or(*max)),
     );
+    let size = [0, 1, 2].map(|a| dims[a] as f64 * spacing[a]);
+    let top = scale_max.unwrap_or(*max);
     for p in slices {
-        s.push_str(&figure(p, pics, css_width(p)));
+        let cb = grainpipe_charts::slice::ColorBar {
+            lo: *min,
+            hi: top,
+            label: grainpipe_charts::style::axis_label(quantity, u),
+            saturated: top < *max,
+        };
+        s.push_str(&framed_figure(p, pics, css_width(p), size, Some(cb)));
     }
     s.push_str("</div>");
     s
@@ -157,7 +199,7 @@ fn sizes_html(sz: &Sizes, what: &str) -> String {
         "<div class=\"sizes\"><h4>Size distribution of the {what}</h4>{}<p>{} {what}; \
          equivalent diameter (of the sphere of the same volume): mean {}; by number D10 {}, \
          D50 {}, D90 {}; by volume D10 {}, D50 {}, D90 {}.</p></div>",
-        html::histogram_svg(
+        crate::plots::histogram(
             &um,
             &counts,
             Some(&cum),
@@ -215,7 +257,7 @@ pub fn packing_html(it: &Item, pics: &Pics) -> String {
                 }
             );
             for p in renders {
-                s.push_str(&figure(p, pics, p.width.min(360)));
+                s.push_str(&framed_figure(p, pics, p.width.min(360), *domain, None));
             }
             if let Some(sz) = sizes {
                 s.push_str(&sizes_html(sz, if *clumps { "grains" } else { "spheres" }));
@@ -534,6 +576,7 @@ pub fn table_html(it: &Item) -> String {
         name,
         rows,
         columns,
+        ..
     } = &it.body
     else {
         return String::new();
@@ -603,7 +646,7 @@ fn distribution_chart(name: &str, columns: &[Col], rows: usize) -> Option<String
     }
     let mut edges: Vec<f64> = lower.iter().map(|d| d * 1e6).collect();
     edges.push(upper[upper.len() - 1] * 1e6);
-    Some(html::histogram_svg(
+    Some(crate::plots::histogram(
         &edges,
         &share.iter().map(|v| 100.0 * v).collect::<Vec<_>>(),
         Some(&cumulative.iter().map(|v| 100.0 * v).collect::<Vec<_>>()),
@@ -715,6 +758,22 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
     );
     let tables = of(&|b| matches!(b, Body::Table { .. }));
     let others = of(&|b| matches!(b, Body::ContactGraph { .. } | Body::Series { .. }));
+    // What the run computed over iterations or time: the charts of its history tables, each
+    // solver's residual against the tolerance of its step.
+    let histories: Vec<String> = tables
+        .iter()
+        .filter(|i| matches!(&i.body, Body::Table { name, .. } if name.contains("history")))
+        .flat_map(|it| {
+            let step = step_of(&it.source);
+            let tol = rec
+                .provenance
+                .iter()
+                .find(|p| p.step == step)
+                .and_then(|p| crate::plots::tolerance(&p.params));
+            crate::plots::history_charts(it, tol)
+        })
+        .collect();
+    let exported = exported_pngs(rec, pics);
 
     let mut body = String::new();
     let ok = rec.status == "ok";
@@ -744,6 +803,8 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
         ("microstructure", "Microstructure", images.len()),
         ("packing", "Packing", packings.len()),
         ("fields", "Fields", fields.len()),
+        ("convergence", "Convergence", histories.len()),
+        ("pictures", "Exported pictures", exported.len()),
         ("stiffness", "Stiffness", stiff.len()),
         ("permeability", "Permeability", perm.len()),
         ("tensors", "Other tensors", other_tensors.len()),
@@ -890,6 +951,33 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
                 join(&fields, &|i| field_html(i, pics))
             ),
         ));
+    }
+    if !histories.is_empty() {
+        body.push_str(&section(
+            "convergence",
+            "Convergence and histories",
+            &format!(
+                "<p class=\"note\">From the steps' history tables: solver residuals against the \
+                 iteration on a log scale, with the step's tolerance as a line (one line per load \
+                 case or direction); energies; temperatures and bonds against time.</p>{}",
+                histories.join("\n")
+            ),
+        ));
+    }
+    if !exported.is_empty() {
+        let mut t =
+            String::from("<p class=\"note\">The PNG files the run exported, as written.</p>");
+        for (e, png) in &exported {
+            let (w, h) = png_size(png).unwrap_or((560, 400));
+            let _ = write!(
+                t,
+                "<figure>{}<figcaption>{} (from {})</figcaption></figure>",
+                html::img(png, &e.path, w, h, w.min(560)),
+                esc(&e.path),
+                esc(&e.from)
+            );
+        }
+        body.push_str(&section("pictures", "Exported pictures", &t));
     }
     if !stiff.is_empty() {
         body.push_str(&section(
@@ -1064,6 +1152,40 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
     html::page(&format!("{} — grainpipe report", rec.pipeline_name), &body)
 }
 
+/// The key under which [`crate::render_dir`] puts an exported file's bytes into the pictures.
+pub fn export_key(path: &str) -> String {
+    format!("export:{path}")
+}
+
+/// Exported PNG files bigger than this are not embedded.
+const MAX_EMBEDDED_PNG: usize = 8 << 20;
+
+/// The PNG exports of a run that were written, with their bytes (from `pics`, else read from
+/// the recorded path).
+fn exported_pngs<'a>(
+    rec: &'a RunRecord,
+    pics: &Pics,
+) -> Vec<(&'a crate::record::ExportRecord, Vec<u8>)> {
+    rec.exports
+        .iter()
+        .filter(|e| e.written && e.path.to_ascii_lowercase().ends_with(".png"))
+        .filter_map(|e| {
+            let bytes = pics
+                .get(&export_key(&e.path))
+                .cloned()
+                .or_else(|| std::fs::read(&e.path).ok())?;
+            (bytes.starts_with(b"\x89PNG") && bytes.len() <= MAX_EMBEDDED_PNG).then_some((e, bytes))
+        })
+        .collect()
+}
+
+/// Width and height from a PNG's header.
+fn png_size(png: &[u8]) -> Option<(usize, usize)> {
+    let w = u32::from_be_bytes(png.get(16..20)?.try_into().ok()?);
+    let h = u32::from_be_bytes(png.get(20..24)?.try_into().ok()?);
+    Some((w as usize, h as usize))
+}
+
 /// The warnings of a run, at the top of its page: one line per warning, with its step.
 fn warnings_block(warnings: &[crate::record::WarningRecord]) -> String {
     let mut out = String::from("<section id=\"warnings\" class=\"warnings\"><h2>Warnings</h2><ul>");
@@ -1105,8 +1227,12 @@ mod tests {
             col("cumulative", &[0.2, 0.7, 1.0]),
         ];
         let svg = super::distribution_chart("local_thickness", &columns, 3).unwrap();
-        assert_eq!(svg.matches("<rect").count(), 3, "{svg}");
+        assert!(
+            svg.starts_with("<svg class=\"chart histogram\" data-bars=\"3\""),
+            "{svg}"
+        );
         assert!(svg.contains("polyline") && svg.contains("µm"));
+        assert!(svg.contains("cumulative volume [%]"));
         assert!(super::distribution_chart("phases", &columns, 3).is_none());
         // a table cut to its first and last rows is not drawn
         assert!(super::distribution_chart("local_thickness", &columns, 90).is_none());

@@ -1,6 +1,6 @@
 //! Pictures for reports: mid-plane slices of phase images and fields, an orthographic
-//! depth-shaded rendering of packings, PNG encoding. Drawn here rather than with a plotting
-//! crate: they are plain pixel maps, and the report must build on a bare Debian.
+//! depth-shaded rendering of packings, PNG encoding. They are plain pixel maps, one pixel per
+//! voxel; the page frames them with axes, scale and colour bars drawn by grainpipe-charts.
 
 use grainpipe_core::model::{Grid, Packing, PhaseImage};
 
@@ -146,40 +146,9 @@ pub fn phase_slice(img: &PhaseImage, plane: Plane) -> Rgb {
     out
 }
 
-/// Perceptually ordered colour map from dark blue through green to yellow (anchors after
-/// matplotlib's viridis, interpolated linearly).
+/// The colour map of fields (grainpipe-charts' viridis, as on the colour bars).
 pub fn colormap(t: f64) -> [u8; 3] {
-    const A: [[f64; 3]; 9] = [
-        [68.0, 1.0, 84.0],
-        [71.0, 44.0, 122.0],
-        [59.0, 81.0, 139.0],
-        [44.0, 113.0, 142.0],
-        [33.0, 144.0, 141.0],
-        [39.0, 173.0, 129.0],
-        [92.0, 200.0, 99.0],
-        [170.0, 220.0, 50.0],
-        [253.0, 231.0, 37.0],
-    ];
-    let t = if t.is_finite() {
-        t.clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let x = t * (A.len() - 1) as f64;
-    let i = (x.floor() as usize).min(A.len() - 2);
-    let f = x - i as f64;
-    [0, 1, 2].map(|c| (A[i][c] + f * (A[i + 1][c] - A[i][c])).round() as u8)
-}
-
-/// CSS `linear-gradient` of [`colormap`], for colour bars.
-pub fn colormap_css() -> String {
-    let stops: Vec<String> = (0..=8)
-        .map(|k| {
-            let [r, g, b] = colormap(k as f64 / 8.0);
-            format!("rgb({r},{g},{b}) {}%", k * 100 / 8)
-        })
-        .collect();
-    format!("linear-gradient(to right, {})", stops.join(", "))
+    grainpipe_charts::style::viridis(t)
 }
 
 /// A scalar per voxel on a mid-plane, mapped linearly from [lo, hi] to the colour map.

@@ -5,54 +5,27 @@
 
 use crate::html::{self, esc, num, table};
 use crate::numbers::summary;
+use std::collections::HashMap;
 use std::fmt::Write;
 use std::path::Path;
 
 /// Columns that describe a run rather than a result.
 const META: &[&str] = &["run", "point", "realization", "seed", "status", "error"];
 
-/// A CSV file's header and records (RFC 4180 quoting; `#` comment lines skipped).
+/// A CSV file's header and records (RFC 4180 quoting, by the `csv` crate; `#` comment lines
+/// and empty lines skipped, rows of any length). A record that does not parse ends the
+/// table.
 pub fn parse_csv(text: &str) -> Vec<Vec<String>> {
-    let mut rows = vec![];
-    let mut row = vec![];
-    let mut field = String::new();
-    let mut quoted = false;
-    let mut at_line_start = true;
-    let mut chars = text.chars().peekable();
-    while let Some(c) = chars.next() {
-        if at_line_start && c == '#' && !quoted {
-            for c in chars.by_ref() {
-                if c == '\n' {
-                    break;
-                }
-            }
-            continue;
-        }
-        at_line_start = false;
-        match (quoted, c) {
-            (true, '"') if chars.peek() == Some(&'"') => {
-                chars.next();
-                field.push('"');
-            }
-            (true, '"') => quoted = false,
-            (true, c) => field.push(c),
-            (false, '"') => quoted = true,
-            (false, ',') => row.push(std::mem::take(&mut field)),
-            (false, '\r') => {}
-            (false, '\n') => {
-                row.push(std::mem::take(&mut field));
-                rows.push(std::mem::take(&mut row));
-                at_line_start = true;
-            }
-            (false, c) => field.push(c),
-        }
-    }
-    if !field.is_empty() || !row.is_empty() {
-        row.push(field);
-        rows.push(row);
-    }
-    rows.retain(|r| !(r.len() == 1 && r[0].is_empty()));
-    rows
+    csv::ReaderBuilder::new()
+        .has_headers(false)
+        .comment(Some(b'#'))
+        .flexible(true)
+        .from_reader(text.as_bytes())
+        .records()
+        .map_while(Result::ok)
+        .map(|r| r.iter().map(String::from).collect::<Vec<_>>())
+        .filter(|r| !(r.len() == 1 && r[0].is_empty()))
+        .collect()
 }
 
 /// `name [unit]` -> (name, unit).
@@ -71,6 +44,45 @@ pub struct Sweep {
     /// Names of the varied parameters (from sweep.json).
     pub params: Vec<String>,
     pub pipeline: String,
+    /// Component names of collected values (`kappa_xx` for `flow.permeability[0]`), from the
+    /// runs' result.json.
+    pub components: HashMap<String, String>,
+}
+
+/// The component names the runs recorded for their collected values (`runs/*/result.json`:
+/// `values[].component`).
+fn component_names(dir: &Path) -> HashMap<String, String> {
+    let mut out = HashMap::new();
+    let Ok(runs) = std::fs::read_dir(dir.join("runs")) else {
+        return out;
+    };
+    let mut runs: Vec<_> = runs.flatten().map(|e| e.path()).collect();
+    runs.sort();
+    for r in runs {
+        let Some(v) = std::fs::read_to_string(r.join("result.json"))
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        else {
+            continue;
+        };
+        for x in v
+            .get("values")
+            .and_then(|x| x.as_array())
+            .into_iter()
+            .flatten()
+        {
+            if let (Some(n), Some(c)) = (
+                x.get("name").and_then(|n| n.as_str()),
+                x.get("component").and_then(|c| c.as_str()),
+            ) {
+                out.entry(n.to_string()).or_insert_with(|| c.to_string());
+            }
+        }
+        if !out.is_empty() {
+            break;
+        }
+    }
+    out
 }
 
 impl Sweep {
@@ -109,6 +121,7 @@ impl Sweep {
             rows,
             params,
             pipeline,
+            components: component_names(dir),
         })
     }
 
@@ -186,13 +199,141 @@ impl Sweep {
     }
 }
 
+/// The name a column is shown by: its component name (`kappa_xx`, `E_z (apparent)`) when
+/// the runs recorded one, prefixed by the artifact (`flow.permeability kappa_xx`), else the
+/// column's name.
+fn display(s: &Sweep, c: usize) -> String {
+    let n = &s.names[c];
+    match s.components.get(n) {
+        Some(comp) => {
+            // `flow.permeability[0]` -> `flow.permeability`; `x.constants.E_z[0]` -> `x.constants`.
+            let base = n.split('[').next().unwrap_or(n);
+            let base = match comp.split(' ').next() {
+                Some(first) => base
+                    .strip_suffix(first)
+                    .map(|b| b.trim_end_matches('.'))
+                    .unwrap_or(base),
+                None => base,
+            };
+            format!("{base} {comp}")
+        }
+        None => n.clone(),
+    }
+}
+
 fn label(s: &Sweep, c: usize) -> String {
     let u = &s.units[c];
     if u.is_empty() || u == "1" {
-        s.names[c].clone()
+        display(s, c)
     } else {
-        format!("{} [{u}]", s.names[c])
+        format!("{} [{u}]", display(s, c))
     }
+}
+
+/// An SVG file written by grainpipe-charts, for inline use: the XML prolog dropped, scaled to
+/// the page's width.
+fn inline_svg_file(path: &Path, class: &str) -> Option<String> {
+    let t = std::fs::read_to_string(path).ok()?;
+    let t = t.trim_start();
+    let t = t
+        .strip_prefix("<?xml version=\"1.0\" encoding=\"UTF-8\"?>")
+        .unwrap_or(t)
+        .trim_start();
+    let rest = t.strip_prefix("<svg")?;
+    Some(format!(
+        "<svg class=\"{class}\" style=\"max-width:100%;height:auto\" data-file=\"{}\"{rest}",
+        esc(&path.file_name()?.to_string_lossy())
+    ))
+}
+
+/// The charts `pipe sweep` drew of the means against a varied parameter (`charts/*_vs_*.svg`)
+/// and of the RVE analysis, inline.
+fn charts_section(dir: &Path) -> String {
+    let Ok(rd) = std::fs::read_dir(dir.join("charts")) else {
+        return String::new();
+    };
+    let mut files: Vec<_> = rd
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            let n = p
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            n.ends_with(".svg") && !n.starts_with("violin_") && !n.starts_with('.')
+        })
+        .collect();
+    files.sort();
+    let charts: Vec<String> = files
+        .iter()
+        .filter_map(|p| inline_svg_file(p, "chart sweep-chart"))
+        .collect();
+    if charts.is_empty() {
+        return String::new();
+    }
+    format!(
+        "<section id=\"charts\"><h2>Means against the varied parameters</h2><p class=\"note\">\
+         From the sweep's charts/ directory: each quantity's mean with its 90 % confidence \
+         interval against the first numeric varied parameter (and the RVE analysis when it \
+         ran).</p>{}</section>",
+        charts.join("\n")
+    )
+}
+
+/// A study's error against its cost (`study.svg`, `study_memory.svg`) and the level it chose
+/// (`study.json`), when the directory holds a study.
+fn study_section(dir: &Path) -> String {
+    let Some(j) = std::fs::read_to_string(dir.join("study.json"))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+    else {
+        return String::new();
+    };
+    let text = |k: &str| -> String {
+        match j.get(k) {
+            None | Some(serde_json::Value::Null) => "–".into(),
+            Some(serde_json::Value::String(s)) => esc(s),
+            Some(serde_json::Value::Number(n)) => num(n.as_f64().unwrap_or(f64::NAN)),
+            Some(v) => esc(&v.to_string()),
+        }
+    };
+    let chosen = match j.get("chosen_level") {
+        Some(serde_json::Value::String(s)) => {
+            format!("<span class=\"ok\" id=\"chosen-level\">{}</span>", esc(s))
+        }
+        _ => "<span class=\"warn\" id=\"chosen-level\">none meets the target error</span>".into(),
+    };
+    let ev = j.get("evidence").filter(|e| !e.is_null());
+    let evf = |k: &str| ev.and_then(|e| e.get(k)).and_then(|v| v.as_f64());
+    let mut rows = vec![
+        ("parameter", text("parameter")),
+        ("metric", text("metric")),
+        ("levels", text("levels")),
+        ("error basis", text("error_basis")),
+        ("observed order", text("observed_order")),
+        ("target error", text("target_error")),
+        ("chosen level", chosen),
+    ];
+    if let Some(e) = evf("error") {
+        rows.push(("its error", html::pct(e)));
+    }
+    if let Some(w) = evf("wall_time_s") {
+        rows.push(("its wall time", format!("{} s", num(w))));
+    }
+    if let Some(m) = evf("peak_memory_bytes") {
+        rows.push(("its peak memory", html::bytes(m as u64)));
+    }
+    let charts: String = ["study.svg", "study_memory.svg"]
+        .iter()
+        .filter_map(|f| inline_svg_file(&dir.join(f), "chart study-front"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    format!(
+        "<section id=\"study\"><h2>Study: error against cost</h2>{}<p class=\"note\">Each \
+         level's relative error against its wall time and peak memory (log-log); the line is \
+         the Pareto front (no other level is both cheaper and more accurate).</p>{charts}</section>",
+        html::kv(&rows)
+    )
 }
 
 /// The sweep report page.
@@ -213,11 +354,16 @@ pub fn sweep_page(dir: &Path, s: &Sweep) -> String {
     } else {
         format!("sweep of {}", s.pipeline)
     };
-    let mut body = format!(
+    let charts_html = charts_section(dir);
+    let study_html = study_section(dir);
+    let mut body =
+        format!(
         "<header id=\"top\"><h1>{}</h1><nav><a href=\"#summary\">Summary</a><a href=\"#violins\">\
-         Distributions</a><a href=\"#intervals\">Confidence intervals</a><a href=\"#runs\">Runs</a>\
-         </nav></header>",
-        esc(&title)
+         Distributions</a>{}{}<a href=\"#intervals\">Confidence intervals</a>\
+         <a href=\"#runs\">Runs</a></nav></header>",
+        esc(&title),
+        if charts_html.is_empty() { "" } else { "<a href=\"#charts\">Means</a>" },
+        if study_html.is_empty() { "" } else { "<a href=\"#study\">Study</a>" },
     );
     let _ = write!(
         body,
@@ -248,34 +394,51 @@ pub fn sweep_page(dir: &Path, s: &Sweep) -> String {
 
     let mut v = String::from(
         "<section id=\"violins\"><h2>Distributions over the realizations</h2><p class=\"note\">\
-         One violin per parameter point: kernel density (Gaussian, Silverman bandwidth), the \
-         runs as dots, the mean as a red bar and its 90 % confidence interval (Student t) as a \
-         red whisker. Failed runs are left out.</p>",
+         Per quantity, one violin per parameter point on one shared y axis: kernel density \
+         (Gaussian, Silverman bandwidth), the runs as dots, the mean as a white dot and its 90 % \
+         confidence interval (Student t) as a red whisker on the violin's centre line. Failed \
+         runs are left out.</p>",
     );
     for &c in &values {
+        let groups_c: Vec<grainpipe_charts::Group> = groups
+            .iter()
+            .filter_map(|(g, rows)| {
+                let sample = s.sample(c, rows);
+                if sample.is_empty() {
+                    return None;
+                }
+                let m = summary(&sample);
+                Some(grainpipe_charts::Group {
+                    label: format!("{g} (n = {})", sample.len()),
+                    values: sample,
+                    mean: m.mean,
+                    ci: m
+                        .ci90
+                        .is_finite()
+                        .then_some((m.mean - m.ci90, m.mean + m.ci90)),
+                })
+            })
+            .collect();
+        if groups_c.is_empty() {
+            continue;
+        }
         let _ = write!(
             v,
-            "<div class=\"violin-group\" data-column=\"{}\"><h3>{}</h3>",
+            "<div class=\"violin-group\" data-column=\"{}\"><h3>{}{}</h3>{}</div>",
             esc(&s.names[c]),
-            esc(&label(s, c))
+            esc(&label(s, c)),
+            if s.components.contains_key(&s.names[c]) {
+                format!(" <span class=\"note\">({})</span>", esc(&s.names[c]))
+            } else {
+                String::new()
+            },
+            crate::plots::violins(&label(s, c), &groups_c)
         );
-        for (g, rows) in &groups {
-            let sample = s.sample(c, rows);
-            if sample.is_empty() {
-                continue;
-            }
-            let _ = write!(
-                v,
-                "<figure>{}<figcaption>{} (n = {})</figcaption></figure>",
-                html::violin_svg(&sample, &label(s, c)),
-                esc(g),
-                sample.len()
-            );
-        }
-        v.push_str("</div>");
     }
     v.push_str("</section>");
     body.push_str(&v);
+    body.push_str(&charts_html);
+    body.push_str(&study_html);
 
     let mut rows = vec![];
     for &c in &values {

@@ -82,8 +82,27 @@ fn skip() -> bool {
     false
 }
 
+/// With GRAINPIPE_REPORT_KEEP=DIR, the pages and screenshots are copied there to look at.
+fn keep(files: &[&Path]) {
+    if let Some(d) = std::env::var_os("GRAINPIPE_REPORT_KEEP") {
+        let d = PathBuf::from(d);
+        std::fs::create_dir_all(&d).unwrap();
+        for f in files {
+            // run/report.html -> run-report.html
+            let parent = f.parent().and_then(|p| p.file_name()).unwrap_or_default();
+            let name = format!(
+                "{}-{}",
+                parent.to_string_lossy(),
+                f.file_name().unwrap().to_string_lossy()
+            );
+            let _ = std::fs::copy(f, d.join(name));
+        }
+    }
+}
+
 /// The screenshot is a real, non-blank PNG of the requested width.
 fn check_screenshot(shot: &Path) {
+    keep(&[shot]);
     let bytes = std::fs::read(shot).expect("screenshot written");
     let dec = png::Decoder::new(std::io::Cursor::new(bytes));
     let mut r = dec.read_info().unwrap();
@@ -240,9 +259,28 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
         values: vec![3.8e-11, 2e-13, 0.0, 2e-13, 3.9e-11, 0.0, 0.0, 0.0, 3.5e-11],
         convention: TensorConvention::Plain,
     };
+    // Two load cases converging at different rates, 100 rows in all (more than a table shows).
     let history = Table::new("history")
-        .with_i64("iteration", "", (0..100).collect())
-        .with_f64("residual", "", (0..100).map(|i| 0.5f64.powi(i)).collect());
+        .with_str(
+            "load_case",
+            (0..100)
+                .map(|i| if i < 50 { "xx" } else { "yy" }.to_string())
+                .collect(),
+        )
+        .with_i64("iteration", "", (0..100).map(|i| i % 50).collect())
+        .with_f64(
+            "residual",
+            "",
+            (0..100)
+                .map(|i| {
+                    if i < 50 {
+                        0.7f64.powi(i)
+                    } else {
+                        0.6f64.powi(i - 50)
+                    }
+                })
+                .collect(),
+        );
     let mut pics = vec![];
     let items = vec![
         data::item("pack.packing", &Artifact::Packing(packing), &mut pics),
@@ -298,17 +336,30 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
             step("flow", "stokes.permeability", 0.5),
         ],
         exports: vec![],
-        provenance: vec![StepProvenance {
-            step: "pack".into(),
-            stage: "mcm.stacked".into(),
-            stage_version: "1.0.0".into(),
-            origin: "built-in".into(),
-            seed: 7,
-            cache_key: "abc".into(),
-            params: serde_json::json!({"layers": 2}),
-            inputs: vec![],
-            input_files: vec![],
-        }],
+        provenance: vec![
+            StepProvenance {
+                step: "pack".into(),
+                stage: "mcm.stacked".into(),
+                stage_version: "1.0.0".into(),
+                origin: "built-in".into(),
+                seed: 7,
+                cache_key: "abc".into(),
+                params: serde_json::json!({"layers": 2}),
+                inputs: vec![],
+                input_files: vec![],
+            },
+            StepProvenance {
+                step: "stiffness".into(),
+                stage: "elasticity.fft".into(),
+                stage_version: "1.0.0".into(),
+                origin: "built-in".into(),
+                seed: 8,
+                cache_key: "def".into(),
+                params: serde_json::json!({"tolerance": 1e-6}),
+                inputs: vec![],
+                input_files: vec![],
+            },
+        ],
         host: "test".into(),
         threads: 2,
         warnings: vec![grainpipe_report::WarningRecord {
@@ -330,6 +381,18 @@ fn run_report_in_a_browser() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path().join("run");
     let (rec, data, pics) = synthetic();
+    let mut rec = rec;
+    // A PNG the run exported (as `bonds_top.png` of a sintering run): shown inline.
+    let exported = tmp.path().join("bonds_top.png");
+    let mut bonds = grainpipe_report::raster::Rgb::new(40, 30, [250, 250, 250]);
+    bonds.set(10, 10, [200, 0, 0]);
+    std::fs::write(&exported, bonds.png()).unwrap();
+    rec.exports.push(record::ExportRecord {
+        from: "sinter.bonds".into(),
+        path: exported.display().to_string(),
+        format: "png".into(),
+        written: true,
+    });
     record::write_run_files(&dir, &rec, &data, &pics).unwrap();
     let page = grainpipe_report::render_dir(&dir, None).unwrap();
     assert_eq!(page, dir.join("report.html"));
@@ -358,17 +421,40 @@ fn run_report_in_a_browser() {
     assert!(html.contains("id=\"status\">completed with 1 warning</span>"));
     assert!(html.contains("<span class=\"step\">pack</span>: radii: KS test"));
     assert!(html.contains("cache, <a class=\"warn\" href=\"#warnings\">1 warning</a>"));
+    // Issue 36: the residual history on a log axis, a line per load case, the tolerance.
+    let conv = html
+        .split("<svg class=\"chart convergence\"")
+        .nth(1)
+        .expect("a convergence chart");
+    assert!(conv.starts_with(" data-y-scale=\"log\""), "{}", &conv[..80]);
+    let conv = &conv[..conv.find("</svg>").unwrap()];
+    assert!(conv.contains("tolerance 1e-6"), "tolerance line");
+    assert!(conv.contains("xx") && conv.contains("yy"), "load cases");
+    assert!(
+        conv.contains("1e-6") && conv.contains("iteration"),
+        "log ticks"
+    );
+    // Issue 36: every slice and rendering framed with axes in µm and a scale bar; fields
+    // with a colour bar in their unit.
+    assert_eq!(html.matches("<svg class=\"slice-axes\"").count(), 14);
+    assert!(html.contains("x [µm]") && html.contains("z [µm]"));
+    assert_eq!(html.matches("data-scale-bar=\"").count(), 14);
+    assert!(html.contains("velocity magnitude [m/s]"));
+    assert!(html.contains("von Mises equivalent of stress [Pa]"));
     if skip() {
         return;
     }
     let shot = tmp.path().join("run.png");
     let dom = browse(&page, &shot, &tmp.path().join("profile"));
+    keep(&[&page]);
     for id in [
         "warnings",
         "summary",
         "microstructure",
         "packing",
         "fields",
+        "convergence",
+        "pictures",
         "stiffness",
         "permeability",
         "tables",
@@ -381,8 +467,8 @@ fn run_report_in_a_browser() {
             "section #{id} missing"
         );
     }
-    // 3 phase slices + 2 renderings + 3 velocity slices + 2 x 3 stress slices.
-    assert_eq!(attr(&dom, "data-images"), Some("14"), "image count");
+    // 3 phase slices + 2 renderings + 3 velocity slices + 2 x 3 stress slices + 1 export.
+    assert_eq!(attr(&dom, "data-images"), Some("15"), "image count");
     assert_eq!(
         attr(&dom, "data-images-ok"),
         Some("true"),
@@ -390,8 +476,14 @@ fn run_report_in_a_browser() {
     );
     assert!(dom.contains("von Mises equivalent of stress"));
     assert!(
-        dom.contains("<svg class=\"chart\""),
+        dom.contains("<svg class=\"chart histogram\""),
         "size distribution chart"
+    );
+    assert!(dom.contains("data-y-scale=\"log\""), "log residual axis");
+    assert!(dom.contains("class=\"slice-axes\""), "slice axes");
+    assert!(
+        dom.contains("bonds_top.png (from sinter.bonds)"),
+        "exported PNG"
     );
     check_screenshot(&shot);
 }
@@ -402,7 +494,7 @@ fn sweep_report_and_html_export_in_a_browser() {
     let dir = tmp.path().join("sweep");
     std::fs::create_dir_all(&dir).unwrap();
     let mut csv = String::from(
-        "run,point,realization,binder_fraction [1],E_x [Pa],kappa_zz [m^2],seed,wall_time [s],peak_memory [B],status,error\n",
+        "run,point,realization,binder_fraction [1],E_x [Pa],flow.permeability[8] [m^2],seed,wall_time [s],peak_memory [B],status,error\n",
     );
     for p in 0..2 {
         for r in 0..8 {
@@ -424,11 +516,83 @@ fn sweep_report_and_html_export_in_a_browser() {
         r#"{"pipeline_name":"sandcore","vary":[{"key":"binder_fraction","values":["0.02","0.04"]}]}"#,
     )
     .unwrap();
+    // A run's result.json names the tensor component; the sweep's charts/ has a mean
+    // against the parameter; the directory is a study with a chosen level.
+    std::fs::create_dir_all(dir.join("runs/p0-r0")).unwrap();
+    std::fs::write(
+        dir.join("runs/p0-r0/result.json"),
+        r#"{"id":"p0-r0","status":"ok","error":"","seed":1000,"wall_time":1.5,"peak_memory":1,
+            "values":[{"name":"flow.permeability[8]","unit":"m^2","value":3.5e-11,"component":"kappa_zz"}]}"#,
+    )
+    .unwrap();
+    let mean = grainpipe_charts::Figure {
+        title: "E_x against binder_fraction (mean, 90 % CI)".into(),
+        x_label: "binder_fraction".into(),
+        y_label: "E_x [Pa]".into(),
+        series: vec![grainpipe_charts::Series {
+            name: "mean".into(),
+            points: vec![(0.02, 4.5e9), (0.04, 4.9e9)],
+            err: vec![(4.4e9, 4.6e9), (4.8e9, 5.0e9)],
+            line: true,
+            markers: true,
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    mean.save(&dir.join("charts/E_x_vs_binder_fraction"))
+        .unwrap();
+    std::fs::write(
+        dir.join("study.json"),
+        r#"{"parameter":"binder_fraction","metric":"E_x","levels":["0.02","0.04"],
+            "error_basis":"finest level","target_error":0.05,"chosen_level":"0.04",
+            "evidence":{"error":0.01,"wall_time_s":1.5,"peak_memory_bytes":100000000}}"#,
+    )
+    .unwrap();
+    let front = grainpipe_charts::Figure {
+        x_label: "wall time [s]".into(),
+        y_label: "relative error".into(),
+        x_log: true,
+        y_log: true,
+        series: vec![grainpipe_charts::Series {
+            name: "Pareto front".into(),
+            points: vec![(1.0, 0.1), (1.5, 0.01)],
+            line: true,
+            ..Default::default()
+        }],
+        ..Default::default()
+    };
+    front.save(&dir.join("study")).unwrap();
     let page = grainpipe_report::render_dir(&dir, None).unwrap();
     let html = std::fs::read_to_string(&page).unwrap();
-    // 2 points x 4 value columns (E_x, kappa_zz, wall_time, peak_memory; the constant ones
-    // get a violin without a density).
-    assert_eq!(html.matches("<svg class=\"violin\"").count(), 8);
+    // One chart per value column (E_x, kappa_zz, wall_time, peak_memory; the constant ones
+    // get violins without a density), each with the violins of both points: one y axis.
+    assert_eq!(html.matches("<svg class=\"violin\"").count(), 4);
+    assert_eq!(html.matches("data-violins=\"2\"").count(), 4);
+    let ex = html
+        .split("data-column=\"E_x\"")
+        .nth(1)
+        .unwrap()
+        .split("</div>")
+        .next()
+        .unwrap();
+    assert_eq!(
+        ex.matches("<svg").count(),
+        1,
+        "one chart for the violins of E_x"
+    );
+    assert_eq!(ex.matches("<polygon").count(), 2, "two violins in it");
+    // The shared y range holds every value of both points (4.0e9 .. 5.5e9).
+    let range = attr(ex, "data-y-range").unwrap();
+    let (lo, hi) = range.split_once(' ').unwrap();
+    let (lo, hi): (f64, f64) = (lo.parse().unwrap(), hi.parse().unwrap());
+    assert!(lo <= 4.0e9 && hi >= 5.3e9, "{range}");
+    // Tensor components by name.
+    assert!(html.contains("flow.permeability kappa_zz [m^2]"));
+    // The sweep's mean-against-parameter chart and the study's front and choice.
+    assert!(html.contains("data-file=\"E_x_vs_binder_fraction.svg\""));
+    assert!(html.contains("<section id=\"study\""));
+    assert!(html.contains("<span class=\"ok\" id=\"chosen-level\">0.04</span>"));
+    assert!(html.contains("data-file=\"study.svg\""));
 
     // The html export of one artifact (a phase image with provenance).
     let g = grid(10, 1e-5);
@@ -463,7 +627,8 @@ fn sweep_report_and_html_export_in_a_browser() {
         &tmp.path().join("sweep.png"),
         &tmp.path().join("profile"),
     );
-    for id in ["summary", "violins", "intervals", "runs"] {
+    keep(&[&page]);
+    for id in ["summary", "violins", "charts", "study", "intervals", "runs"] {
         assert!(
             dom.contains(&format!("<section id=\"{id}\"")),
             "section #{id} missing"

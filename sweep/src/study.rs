@@ -214,21 +214,22 @@ fn cost_figure(
     what: &str,
     metric: &str,
 ) -> charts::Figure {
-    let lg = |x: f64| x.log10();
     let pts = |only_front: bool| -> Vec<(f64, f64)> {
         let mut p: Vec<(f64, f64)> = a
             .levels
             .iter()
             .filter(|l| l.error.is_finite() && l.error > 0.0 && (!only_front || l.pareto))
-            .map(|l| (lg(cost(l)), lg(l.error)))
+            .map(|l| (cost(l), l.error))
             .collect();
         p.sort_by(|x, y| x.0.total_cmp(&y.0));
         p
     };
     charts::Figure {
         title: format!("{metric}: error against {what}"),
-        x_label: format!("log10 {what}"),
-        y_label: "log10 relative error".into(),
+        x_label: what.to_string(),
+        y_label: "relative error".into(),
+        x_log: true,
+        y_log: true,
         series: vec![
             charts::Series {
                 name: "levels".into(),

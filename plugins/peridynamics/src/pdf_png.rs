@@ -14,7 +14,6 @@ use grainpipe_core::registry::{ExportOption, ExportOptions};
 use grainpipe_core::Exporter;
 use plotters::prelude::*;
 use std::path::Path;
-use std::sync::OnceLock;
 
 pub struct PdfPng;
 
@@ -25,27 +24,10 @@ pub const HEIGHT: u32 = 600;
 /// plot of at most a few hundred bins gains nothing.
 const EDGE: std::ops::RangeInclusive<u32> = 200..=8000;
 
-const FONT_CANDIDATES: &[&str] = &[
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-    "/usr/share/fonts/liberation/LiberationSans-Regular.ttf",
-];
-
-/// Registers a system font once; false when none is available (plotters' ab_glyph backend
-/// has no built-in font, and drawing text without one fails).
+/// The system font of every grainpipe chart (grainpipe-charts registers it once); false
+/// when none is installed.
 fn font_available() -> bool {
-    static OK: OnceLock<bool> = OnceLock::new();
-    *OK.get_or_init(|| {
-        FONT_CANDIDATES.iter().any(|p| {
-            std::fs::read(p).is_ok_and(|bytes| {
-                // plotters keeps fonts for the life of the process.
-                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok()
-            })
-        })
-    })
+    grainpipe_charts::style::font_available()
 }
 
 /// One phase's curves from the table.
@@ -164,7 +146,7 @@ pub fn render(t: &Table, width: u32, height: u32) -> Result<Vec<u8>, String> {
         builder.margin(20);
         if text {
             builder
-                .caption("stress PDF per phase", ("sans-serif", 22))
+                .caption("stress PDF per phase", (grainpipe_charts::style::FONT, 22))
                 .x_label_area_size(45)
                 .y_label_area_size(70);
         } else {
@@ -178,9 +160,9 @@ pub fn render(t: &Table, width: u32, height: u32) -> Result<Vec<u8>, String> {
         if text {
             mesh.x_desc("σ / ⟨σ⟩ (phase mean)")
                 .y_desc("PDF")
-                .y_label_formatter(&|v| format!("{v:.0e}"))
-                .label_style(("sans-serif", 15))
-                .axis_desc_style(("sans-serif", 17));
+                .y_label_formatter(&|v| grainpipe_charts::style::log_tick(*v))
+                .label_style((grainpipe_charts::style::FONT, 15))
+                .axis_desc_style((grainpipe_charts::style::FONT, 17));
         } else {
             mesh.x_labels(0).y_labels(0);
         }
@@ -231,7 +213,7 @@ pub fn render(t: &Table, width: u32, height: u32) -> Result<Vec<u8>, String> {
                 .position(SeriesLabelPosition::UpperRight)
                 .background_style(WHITE.mix(0.9))
                 .border_style(BLACK)
-                .label_font(("sans-serif", 16))
+                .label_font((grainpipe_charts::style::FONT, 16))
                 .draw()
                 .map_err(e)?;
         }

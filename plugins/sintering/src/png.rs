@@ -10,7 +10,6 @@ use grainpipe_core::model::{Artifact, ArtifactKind, ContactGraph, Provenance};
 use grainpipe_core::Exporter;
 use plotters::prelude::*;
 use std::path::Path;
-use std::sync::OnceLock;
 
 pub struct BondGraphPng;
 
@@ -20,26 +19,10 @@ const MARGIN: u32 = 20;
 /// Height of the legend band below the view [px].
 pub const LEGEND: u32 = 80;
 
-const FONT_CANDIDATES: &[&str] = &[
-    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/TTF/DejaVuSans.ttf",
-    "/usr/share/fonts/dejavu/DejaVuSans.ttf",
-    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
-    "/usr/share/fonts/liberation/LiberationSans-Regular.ttf",
-];
-
-/// Registers a system font once; false when none is available.
+/// The system font of every grainpipe chart (grainpipe-charts registers it once); false
+/// when none is installed.
 fn font_available() -> bool {
-    static OK: OnceLock<bool> = OnceLock::new();
-    *OK.get_or_init(|| {
-        FONT_CANDIDATES.iter().any(|p| {
-            std::fs::read(p).is_ok_and(|bytes| {
-                // plotters keeps fonts for the life of the process.
-                let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-                plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok()
-            })
-        })
-    })
+    grainpipe_charts::style::font_available()
 }
 
 /// Image size and the map from world x-y [m] to pixels (y up).
@@ -237,7 +220,9 @@ fn legend<DB: DrawingBackend>(
     range: Option<(f64, f64)>,
 ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
     let text = font_available();
-    let font = ("sans-serif", 18).into_font().color(&BLACK);
+    let font = (grainpipe_charts::style::FONT, 18)
+        .into_font()
+        .color(&BLACK);
     let label = |s: &str, at: (i32, i32)| -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
         if text {
             root.draw(&Text::new(s.to_string(), at, font.clone()))?;
