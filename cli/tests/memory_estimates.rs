@@ -640,10 +640,9 @@ fn slurm_asks_for_the_estimate_plus_the_stated_margin() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let manifest: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(dir.path().join("sw/sweep.json")).unwrap(),
-    )
-    .unwrap();
+    let manifest: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.path().join("sw/sweep.json")).unwrap())
+            .unwrap();
     let runs = manifest["runs"].as_array().unwrap();
     assert_eq!(runs.len(), 2);
     let est: Vec<u64> = runs

@@ -255,7 +255,11 @@ impl SphereRaster {
         let per_sphere: u64 = (0..3)
             .map(|a| {
                 let span = 2.0 * (radius + reach) / (BLOCK as f64 * spacing[a]);
-                let k = if span.is_finite() { span as u64 + 2 } else { blocks[a] };
+                let k = if span.is_finite() {
+                    span as u64 + 2
+                } else {
+                    blocks[a]
+                };
                 k.min(blocks[a]).max(1)
             })
             .product();

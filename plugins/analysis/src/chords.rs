@@ -9,7 +9,10 @@
 //! distribution short, leaving it out biases it slightly short of long chords; the count
 //! says how much was left out).
 
-use crate::pores::{announced_longest_edge, announced_voxels, check_axes, table_rows, Axis, AxisLines, PhaseSelection};
+use crate::pores::{
+    announced_longest_edge, announced_voxels, check_axes, table_rows, Axis, AxisLines,
+    PhaseSelection,
+};
 use grainpipe_core::{
     params, Artifact, ArtifactKind, InputMetas, Inputs, Outputs, PortSpec, Preflight, RunContext,
     StageError, StageInfo, Table, TypedStage,
@@ -217,8 +220,7 @@ impl TypedStage for ChordLengths {
         // d of them) its chord counts of d + 1 u64; the tables, d + 1 rows per axis.
         let d = announced_longest_edge(i) + 1;
         let memory = announced_voxels(i) + 8 * d * d + rows * 48 * d + (64 << 10);
-        Ok(Preflight::from_info(&self.info(), memory)
-            .announce("summary", table_rows(rows)))
+        Ok(Preflight::from_info(&self.info(), memory).announce("summary", table_rows(rows)))
     }
 
     fn run(

@@ -387,10 +387,8 @@ impl TypedStage for TwoPoint {
                     .product()
             });
         let threads = rayon::current_num_threads() as u64;
-        let memory = voxels
-            + threads * 32 * plane
-            + if p.radial { 32 * padded } else { 0 }
-            + (64 << 10);
+        let memory =
+            voxels + threads * 32 * plane + if p.radial { 32 * padded } else { 0 } + (64 << 10);
         let mut pf = Preflight::from_info(&self.info(), memory).announce("s2", table);
         if !p.radial {
             pf.outputs.retain(|k, _| k != "radial");

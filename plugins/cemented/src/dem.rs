@@ -697,7 +697,11 @@ pub fn overlapping_pairs(pos: &[[f64; 3]], radius: &[f64]) -> Vec<(usize, usize)
     }
     // The cell list spans the centres padded by the largest radius (a fixed 1 m margin gave
     // millimetre grains a box of ~1000^3 cells, capped at MAX_CELLS: 400 MB of empty cells).
-    let pad = radius.iter().cloned().fold(0.0, f64::max).max(f64::MIN_POSITIVE);
+    let pad = radius
+        .iter()
+        .cloned()
+        .fold(0.0, f64::max)
+        .max(f64::MIN_POSITIVE);
     let lo = [0, 1, 2].map(|a| pos.iter().map(|c| c[a]).fold(f64::INFINITY, f64::min) - pad);
     let hi = [0, 1, 2].map(|a| pos.iter().map(|c| c[a]).fold(f64::NEG_INFINITY, f64::max) + pad);
     let pairs = build_pairs(pos, radius, lo, [0, 1, 2].map(|a| hi[a] - lo[a]), 0.0, &[]);

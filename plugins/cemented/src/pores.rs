@@ -344,10 +344,7 @@ impl TypedStage for Pores {
             .and_then(|m| m.grid.as_ref())
             .map(|g| g.voxel_count() as u64)
             .unwrap_or(0);
-        let particles = inputs
-            .get("packing")
-            .map(|m| m.count_estimate)
-            .unwrap_or(0);
+        let particles = inputs.get("packing").map(|m| m.count_estimate).unwrap_or(0);
         // Per voxel: the pore, void and contact-wall masks (3 x 1 B) and the component ids of
         // the two labelings held at once (2 x 4 B), plus their per-component tables (below a
         // byte per voxel). Per particle: the particles (33 B), the cell list (~32 B), and the

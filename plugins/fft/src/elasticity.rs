@@ -285,21 +285,21 @@ impl TypedStage for ElasticityFft {
             &self.info(),
             memory(p, n) + mirrored_labels + extra + (64 << 10),
         )
-            .announce(
-                "stiffness",
-                ArtifactMeta::of(ArtifactKind::Tensor).with_count(36, Some([36, 36])),
-            )
-            .announce(
-                "constants",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(4, Some([4, 4])),
-            )
-            .announce(
-                "history",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(
-                    cases * 50,
-                    Some([cases, cases * (p.max_iterations as u64 + 1)]),
-                ),
-            );
+        .announce(
+            "stiffness",
+            ArtifactMeta::of(ArtifactKind::Tensor).with_count(36, Some([36, 36])),
+        )
+        .announce(
+            "constants",
+            ArtifactMeta::of(ArtifactKind::Table).with_count(4, Some([4, 4])),
+        )
+        .announce(
+            "history",
+            ArtifactMeta::of(ArtifactKind::Table).with_count(
+                cases * 50,
+                Some([cases, cases * (p.max_iterations as u64 + 1)]),
+            ),
+        );
         if p.fields {
             for port in ["strain", "stress"] {
                 pf = pf.announce(

@@ -102,13 +102,15 @@ impl TypedStage for Clean {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g),
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),
         };
-        Ok(Preflight::from_info(&self.info(), 6 * voxels + TABLES_BYTES)
-            .announce("image", meta)
-            .announce(
-                "summary",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(2, Some([2, 2])),
-            )
-            .with_plan(CleanPlan { map }))
+        Ok(
+            Preflight::from_info(&self.info(), 6 * voxels + TABLES_BYTES)
+                .announce("image", meta)
+                .announce(
+                    "summary",
+                    ArtifactMeta::of(ArtifactKind::Table).with_count(2, Some([2, 2])),
+                )
+                .with_plan(CleanPlan { map }),
+        )
     }
 
     fn run(

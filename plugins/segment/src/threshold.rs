@@ -248,13 +248,15 @@ impl TypedStage for Threshold {
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),
         };
         let rows = n as u64;
-        Ok(Preflight::from_info(&self.info(), 9 * voxels + TABLES_BYTES)
-            .announce("image", image)
-            .announce(
-                "classes",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(rows, Some([rows, rows])),
-            )
-            .with_plan(ThresholdPlan { labels, names }))
+        Ok(
+            Preflight::from_info(&self.info(), 9 * voxels + TABLES_BYTES)
+                .announce("image", image)
+                .announce(
+                    "classes",
+                    ArtifactMeta::of(ArtifactKind::Table).with_count(rows, Some([rows, rows])),
+                )
+                .with_plan(ThresholdPlan { labels, names }),
+        )
     }
 
     fn run(
