@@ -9,6 +9,8 @@
 //! may round up. The lower bound is checked at every size.
 //!
 //! The stages come from the registry, so a new stage without a case here fails the test.
+//! `KNOWN_OVER` names the few stages whose estimate is still too high, with the reason (the
+//! lower bound holds for them too).
 //! `GRAINPIPE_MEMORY_ONLY=stage.a,stage.b` runs only those (the coverage check still runs).
 
 use std::fmt::Write as _;

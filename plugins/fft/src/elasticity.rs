@@ -270,11 +270,12 @@ impl TypedStage for ElasticityFft {
         let plane = (solved.dims[0] * solved.dims[1]) as u64;
         let real = if p.precision == Precision::F64 { 8 } else { 4 };
         let threads = rayon::current_num_threads() as u64;
-        // Per worker thread, the transform of one plane of the three components (complex, in
-        // and out: 12 reals per plane voxel); with the staggered scheme, per solve the rings
+        // Per rayon task, the transform of one plane of the three components (complex, in and
+        // out: 12 reals per plane voxel); `map_init` makes one per task and a thread can hold
+        // a stolen task's beside its own, so twice the threads are counted; with the staggered scheme, per solve the rings
         // of 18 planes per slab (two slabs per thread, at least 8 planes deep) beyond the one
         // scalar per voxel `memory` counts for them (small images have fewer planes).
-        let mut extra = threads * plane * 12 * real;
+        let mut extra = 2 * threads * plane * 12 * real;
         if p.discretization.scheme() == Scheme::Staggered {
             let nz = solved.dims[2] as u64;
             let slabs = (2 * threads).min(nz / 8).max(1);
