@@ -162,6 +162,8 @@ pub struct Row {
     pub peak_bytes: usize,
     /// Peak live heap of the whole process during the step (baseline included).
     pub peak_heap_bytes: usize,
+    /// The step's preflight memory estimate (exports of its outputs included) [bytes].
+    pub estimate_bytes: u64,
     pub cached: bool,
 }
 
@@ -244,6 +246,7 @@ impl TerminalObserver {
                 from_cache: r.cached,
                 peak_bytes: measured.then_some(r.peak_bytes as u64),
                 peak_heap_bytes: measured.then_some(r.peak_heap_bytes as u64),
+                estimate_bytes: Some(r.estimate_bytes),
             })
             .collect()
     }
@@ -304,6 +307,7 @@ impl Observer for TerminalObserver {
             wall: stats.wall,
             peak_bytes: heap.saturating_sub(self.base),
             peak_heap_bytes: heap,
+            estimate_bytes: step.preflight.memory_bytes,
             cached: stats.from_cache,
         });
         let held = self

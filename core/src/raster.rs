@@ -237,6 +237,41 @@ impl SphereRaster {
         })
     }
 
+    /// Heap bytes of a raster of `spheres` spheres of radius up to `radius` with `reach` on
+    /// a grid of `dims` voxels of `spacing`, for memory estimates: the wrapped spheres, the
+    /// block offsets (two `usize` per block), 8 B per sphere-block pair (a sphere's reach
+    /// spans at most `2 (radius + reach) / (BLOCK h) + 2` blocks per axis, capped at the grid),
+    /// and per worker thread one block's candidates (48 B each), counted at twice the
+    /// average pairs per block (at most every sphere).
+    pub fn memory_bytes(
+        dims: [usize; 3],
+        spacing: [f64; 3],
+        spheres: u64,
+        radius: f64,
+        reach: f64,
+    ) -> u64 {
+        let blocks = dims.map(|n| n.div_ceil(BLOCK) as u64);
+        let nblocks = blocks[0] * blocks[1] * blocks[2];
+        let per_sphere: u64 = (0..3)
+            .map(|a| {
+                let span = 2.0 * (radius + reach) / (BLOCK as f64 * spacing[a]);
+                let k = if span.is_finite() {
+                    span as u64 + 2
+                } else {
+                    blocks[a]
+                };
+                k.min(blocks[a]).max(1)
+            })
+            .product();
+        let pairs = spheres.saturating_mul(per_sphere);
+        let cands = (2 * pairs / nblocks.max(1)).min(spheres);
+        let threads = rayon::current_num_threads() as u64;
+        spheres * std::mem::size_of::<WorldSphere>() as u64
+            + 16 * (nblocks + 1)
+            + 8 * pairs
+            + threads * 48 * cands
+    }
+
     /// Sphere-block pairs stored (8 bytes each).
     pub fn entries(&self) -> usize {
         self.entries.len()

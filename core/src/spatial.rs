@@ -31,6 +31,30 @@ impl CellList {
     /// Cells of edge at least `target` where the box allows (exactly `len / n` per axis, so
     /// periods tile exactly), at most [`MAX_CELLS_PER_AXIS`] per axis and [`MAX_CELLS`] in all.
     pub fn new(min: [f64; 3], len: [f64; 3], periodic: [bool; 3], target: f64) -> Self {
+        let n = Self::cell_counts(len, target);
+        let h = [0, 1, 2].map(|a| len[a] / n[a] as f64);
+        CellList {
+            min,
+            len,
+            periodic,
+            n,
+            h,
+            cells: vec![Vec::new(); (n[0] * n[1] * n[2]) as usize],
+            count: 0,
+        }
+    }
+
+    /// Heap bytes of a cell list over a box of `len` with cells of at least `target` holding
+    /// `items` items, for memory estimates: a 24 B vector per cell (the same cell counts as
+    /// [`CellList::new`]), and per item 4 B, doubled for the vectors' growth, with the first
+    /// allocation of a cell at 16 B (four entries).
+    pub fn memory_bytes(len: [f64; 3], target: f64, items: u64) -> u64 {
+        let n = Self::cell_counts(len, target);
+        let cells = (n[0] * n[1] * n[2]) as u64;
+        24 * cells + 16 * items.min(cells) + 8 * items
+    }
+
+    fn cell_counts(len: [f64; 3], target: f64) -> [i64; 3] {
         let target = if target.is_finite() && target > 0.0 {
             target
         } else {
@@ -49,16 +73,7 @@ impl CellList {
             let a = (0..3).max_by_key(|&a| n[a]).expect("three axes");
             n[a] = (n[a] / 2).max(1);
         }
-        let h = [0, 1, 2].map(|a| len[a] / n[a] as f64);
-        CellList {
-            min,
-            len,
-            periodic,
-            n,
-            h,
-            cells: vec![Vec::new(); (n[0] * n[1] * n[2]) as usize],
-            count: 0,
-        }
+        n
     }
 
     /// Cells per axis.

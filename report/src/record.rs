@@ -25,6 +25,11 @@ pub struct StepRecord {
     pub peak_bytes: Option<u64>,
     /// Peak live heap of the process during the step [bytes].
     pub peak_heap_bytes: Option<u64>,
+    /// The step's preflight memory estimate, exports of its outputs included (what `pipe
+    /// validate` sums and Slurm's `--mem` is sized from), to compare with `peak_bytes`
+    /// [bytes] (absent in records written before it was recorded).
+    #[serde(default)]
+    pub estimate_bytes: Option<u64>,
 }
 
 /// Provenance of one planned step.

@@ -315,6 +315,7 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
         from_cache: s == "pack",
         peak_bytes: Some(1 << 20),
         peak_heap_bytes: Some(3 << 20),
+        estimate_bytes: Some(2 << 20),
     };
     let rec = RunRecord {
         grainpipe_version: grainpipe_core::VERSION.into(),

@@ -75,7 +75,8 @@ pub struct SetupArgs {
     /// Worker threads of each run (default: all cores). Results do not depend on it.
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Where runs execute.
+    /// Where runs execute. `slurm` writes a job array whose `--mem` is the largest preflight
+    /// memory estimate of the runs x 1.5 + 256 MiB.
     #[arg(long, value_enum, default_value = "local")]
     pub executor: Executor,
     /// Slurm: time limit of each array task.

@@ -78,9 +78,22 @@ fn sbatch_quote(s: &str) -> String {
     format!("\"{escaped}\"")
 }
 
-/// The job-array script. `--mem` is the largest preflight estimate of the pending runs with a
-/// 50 % margin plus 256 MiB for the process itself (preflight estimates the data, not the
-/// binary and allocator slack).
+/// The margin of `#SBATCH --mem` over the preflight estimate: x [`MEM_FACTOR`] +
+/// [`MEM_OVERHEAD_MIB`] MiB. The estimate counts each step's arrays (checked against measured
+/// peaks for every stage by cli/tests/memory_estimates.rs: at least the peak heap growth,
+/// at most 3x it); the factor covers allocator slack and fragmentation, the constant the
+/// process itself (binary, thread stacks, the inputs a step keeps alive), which estimates do
+/// not count.
+pub const MEM_FACTOR: f64 = 1.5;
+pub const MEM_OVERHEAD_MIB: u64 = 256;
+
+/// `--mem` in MiB for a run estimated at `estimate_bytes`.
+pub fn mem_mib(estimate_bytes: u64) -> u64 {
+    (estimate_bytes as f64 * MEM_FACTOR / 1048576.0).ceil() as u64 + MEM_OVERHEAD_MIB
+}
+
+/// The job-array script. `--mem` is [`mem_mib`] of the largest preflight estimate of the
+/// pending runs.
 pub fn script(
     p: &Prepared,
     a: &SetupArgs,
@@ -100,7 +113,7 @@ pub fn script(
         .map(|&i| m.runs[i].memory_bytes)
         .max()
         .unwrap_or(0);
-    let mem_mib = (mem as f64 * 1.5 / 1048576.0).ceil() as u64 + 256;
+    let mem_mib = mem_mib(mem);
     let cpus = a.cpus_per_task.or(a.threads).unwrap_or(1);
     let throttle = a.jobs.map(|j| format!("%{j}")).unwrap_or_default();
     let cwd = std::env::current_dir().map_err(|e| e.to_string())?;

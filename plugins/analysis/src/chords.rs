@@ -9,7 +9,10 @@
 //! distribution short, leaving it out biases it slightly short of long chords; the count
 //! says how much was left out).
 
-use crate::pores::{announced_voxels, check_axes, table_rows, Axis, AxisLines, PhaseSelection};
+use crate::pores::{
+    announced_longest_edge, announced_voxels, check_axes, table_rows, Axis, AxisLines,
+    PhaseSelection,
+};
 use grainpipe_core::{
     params, Artifact, ArtifactKind, InputMetas, Inputs, Outputs, PortSpec, Preflight, RunContext,
     StageError, StageInfo, Table, TypedStage,
@@ -213,8 +216,11 @@ impl TypedStage for ChordLengths {
         p.selection.check()?;
         check_axes("axes", &p.axes)?;
         let rows = p.axes.len() as u64;
-        Ok(Preflight::from_info(&self.info(), announced_voxels(i))
-            .announce("summary", table_rows(rows)))
+        // The phase mask (1 B per voxel); per line group (a plane, at most the longest edge
+        // d of them) its chord counts of d + 1 u64; the tables, d + 1 rows per axis.
+        let d = announced_longest_edge(i) + 1;
+        let memory = announced_voxels(i) + 8 * d * d + rows * 48 * d + (64 << 10);
+        Ok(Preflight::from_info(&self.info(), memory).announce("summary", table_rows(rows)))
     }
 
     fn run(

@@ -58,7 +58,9 @@ impl TypedStage for Phases {
                 ));
             }
         }
-        // The component ids (4 bytes per voxel) dominate; the image is the input's.
+        // The component ids (4 bytes per voxel) dominate; the per-label tables of the
+        // labeling (provisional labels, union-find, voxel counts: ~100 B per slab-local
+        // component) are counted at 1 byte per voxel; the image is the input's.
         let voxels = i
             .get("image")
             .map(|m| {
@@ -72,7 +74,7 @@ impl TypedStage for Phases {
             let n = p.labels.len() as u64;
             table = table.with_count(n, Some([n, n]));
         }
-        Ok(Preflight::from_info(&self.info(), 4 * voxels).announce("phases", table))
+        Ok(Preflight::from_info(&self.info(), 5 * voxels + (64 << 10)).announce("phases", table))
     }
 
     fn run(

@@ -132,6 +132,19 @@ pub fn check_axes(key: &str, axes: &[Axis]) -> Result<(), StageError> {
 }
 
 /// Voxels of the input image as announced (its grid, else the count estimate; 0 unknown).
+/// The longest edge of the announced image [voxels]: of its grid, or the cube root of its
+/// announced voxel count.
+pub fn announced_longest_edge(i: &InputMetas) -> u64 {
+    i.get("image")
+        .map(|m| {
+            m.grid.as_ref().map_or_else(
+                || (m.count_estimate as f64).cbrt().ceil() as u64,
+                |g| g.dims.iter().copied().max().unwrap_or(0) as u64,
+            )
+        })
+        .unwrap_or(0)
+}
+
 pub fn announced_voxels(i: &InputMetas) -> u64 {
     i.get("image")
         .map(|m| {

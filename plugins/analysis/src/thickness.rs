@@ -326,11 +326,12 @@ impl TypedStage for LocalThickness {
             ));
         }
         // mask 1, squared distances 8, diameters 8, result 8, ridge buckets up to 24 (x, y,
-        // r^2, D for every ball kept) per voxel; the field 4 more (f32).
+        // r^2, D for every ball kept) per voxel, in vectors that may have doubled (48); the
+        // field 4 more (f32); the tables.
         let voxels = announced_voxels(i);
-        let per = 33 + if p.field { 8 } else { 0 };
+        let per = 57 + if p.field { 8 } else { 0 };
         let bins = p.bins as u64;
-        let mut pf = Preflight::from_info(&self.info(), per * voxels)
+        let mut pf = Preflight::from_info(&self.info(), per * voxels + (64 << 10))
             .announce("distribution", table_rows(bins))
             .announce("summary", table_rows(1));
         match i.get("image").and_then(|m| m.grid.clone()) {

@@ -377,7 +377,18 @@ impl TypedStage for TwoPoint {
                     .map(|a| fft_len(g.dims[a], g.periodic[a]) as u64)
                     .product()
             });
-        let memory = voxels + if p.radial { 32 * padded } else { 0 };
+        // Per worker thread, one plane of padded lines (32 B per voxel of a padded plane).
+        let plane = i
+            .get("image")
+            .and_then(|m| m.grid.as_ref())
+            .map_or(voxels, |g| {
+                (0..2)
+                    .map(|a| fft_len(g.dims[a], g.periodic[a]) as u64)
+                    .product()
+            });
+        let threads = rayon::current_num_threads() as u64;
+        let memory =
+            voxels + threads * 32 * plane + if p.radial { 32 * padded } else { 0 } + (64 << 10);
         let mut pf = Preflight::from_info(&self.info(), memory).announce("s2", table);
         if !p.radial {
             pf.outputs.retain(|k, _| k != "radial");

@@ -73,7 +73,13 @@ impl TypedStage for Closing {
                 ));
             }
         }
-        p.image.preflight(&self.info(), inputs, 17)
+        // Per voxel: the sand labels (1 B, kept as the image), the squared distance to sand
+        // (8 B), the best closing so far (1 B), and inside each trial closing the distance
+        // transform's array and its transposed z rows (2 x 8 B) and the trial's result (1 B);
+        // plus the raster of the sand pass (no binder pass: k = 1, no smoothing scale).
+        let mut pf = p.image.preflight(&self.info(), inputs, 27)?;
+        pf.memory_bytes += p.image.raster_bytes(inputs, 0.0, 1) + (64 << 10);
+        Ok(pf)
     }
 
     fn run(

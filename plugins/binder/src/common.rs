@@ -2,6 +2,7 @@
 //! target counts, the three-phase image and its report.
 
 use crate::components::count_components;
+use grainpipe_core::raster::SphereRaster;
 use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     params, ArtifactKind, ArtifactMeta, Grid, InputMetas, Packing, Phase, PhaseImage, PortSpec,
@@ -151,6 +152,25 @@ impl BinderImage {
             _ => None,
         };
         Ok((grid, n as u64))
+    }
+
+    /// Heap bytes of the sphere raster `smooth_union` builds over this image (see
+    /// [`SphereRaster::memory_bytes`]): the packing's spheres at its mean radius, reaching
+    /// the band of radius corrections and, with `scale_in_voxels` > 0, the smoothing of the
+    /// binder pass of `k` spheres at that scale.
+    pub fn raster_bytes(&self, inputs: &InputMetas, scale_in_voxels: f64, k: usize) -> u64 {
+        let meta = inputs.get("packing");
+        let (Some((lo, hi)), Some(d)) = (
+            meta.and_then(|m| m.domain_box),
+            meta.and_then(|m| m.mean_diameter.or(m.length_scale)),
+        ) else {
+            return 0;
+        };
+        let v = self.voxel(d);
+        let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a]) / v).round().max(1.0) as usize);
+        let spheres = meta.map(|m| m.count_estimate).unwrap_or(0);
+        let reach = crate::smooth_union::max_reach(v, v * scale_in_voxels, k);
+        SphereRaster::memory_bytes(dims, [v; 3], spheres, 0.5 * d, reach)
     }
 
     /// The grid of a packing at run time: the planned one, or one from its mean diameter.

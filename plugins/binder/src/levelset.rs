@@ -124,6 +124,14 @@ impl TypedStage for LevelSet {
             .map_err(|(k, m)| StageError::param(&k, m))?;
         let bytes = if p.level_set { 5 } else { 1 } + p.subvoxel.bytes_per_voxel(3);
         let mut pf = p.image.preflight(&self.info(), inputs, bytes)?;
+        // The sphere raster of the binder pass, sized for a smoothing scale of one voxel (the
+        // scale is found at run time: a larger one, for large binder fractions, costs more
+        // bins, capped at 2^28 entries), and the thresholds of the voxels in the crossing
+        // code, gathered per slab and then flattened (2 x 8 B), counted at the binder's
+        // voxels.
+        let voxels = pf.memory_bytes / bytes;
+        let binder = (p.image.binder_fraction.clamp(0.0, 1.0) * voxels as f64) as u64;
+        pf.memory_bytes += p.image.raster_bytes(inputs, 1.0, p.k) + 16 * binder + (64 << 10);
         if p.level_set {
             if let Some(g) = pf.plan.clone() {
                 pf = pf.announce("level_set", ArtifactMeta::on_grid(ArtifactKind::Field, g));

@@ -367,6 +367,15 @@ fn sum_histograms(parts: Vec<[u64; 256]>) -> [u64; 256] {
 }
 
 /// Builds the three-phase labels. `progress(done, total)` is called per slab of each scan.
+/// The largest reach of the rasters [`smooth_union`] builds on voxels of edge `h` when the
+/// binder pass smooths `k` spheres at scales up to `max_scale` (0 without a binder pass):
+/// the band of radius corrections plus half a voxel diagonal, or the truncated smoothing.
+pub fn max_reach(h: f64, max_scale: f64, k: usize) -> f64 {
+    let grain = BAND_VOXELS * h + 0.5 * 3f64.sqrt() * h;
+    let ln_k = (k.clamp(1, MAX_K) as f64).ln();
+    grain.max(BAND_VOXELS * h + max_scale * (ln_k + TRUNCATION))
+}
+
 pub fn smooth_union<E, P>(
     grid: &Grid,
     spheres: &[WorldSphere],

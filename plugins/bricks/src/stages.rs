@@ -329,13 +329,19 @@ impl BrickParams {
         brick: UnitBrick,
     ) -> Preflight<UnitBrick> {
         let n = self.estimate_spheres(rmean, brick.sides, numbers);
-        // Memory from the upper estimate of the count (the law's lower tail fills the gaps).
-        let upper = self
-            .estimate_spheres(self.tail_radius(), brick.sides, numbers)
+        // Memory per sphere (~400 B): the filler's position, radius and flags and its cell
+        // list entry (~40 B), the assembled copy with its brick index (40 B), ~3.5 contacts
+        // of the contact search and of the output graph (2 x ~3.5 x 24 B), and the output
+        // body (~90 B). The count is the announced one, or the one of the law's median radius
+        // where that is larger (a broad law whose mean sits far above the radii that fill).
+        // Not the lower tail: a saturated fill is made by the bulk of the law, and the tail
+        // count overstated the memory 30 to 70 times.
+        let typical = self
+            .estimate_spheres(self.radius.quantile(0.5), brick.sides, numbers)
             .max(n);
         // The same product as `assemble`, so the announced box is the produced one exactly.
         let size = [0, 1, 2].map(|a| brick.sides[a] * numbers[a] as f64);
-        Preflight::from_info(info, (upper * 400.0) as u64)
+        Preflight::from_info(info, (typical * 400.0) as u64 + (64 << 10))
             .announce(
                 "packing",
                 ArtifactMeta::packing([0.0; 3], size, [false; 3])

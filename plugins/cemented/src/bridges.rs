@@ -106,6 +106,18 @@ fn check_gap(max_gap: f64, largest_radius: f64) -> Result<(), StageError> {
     Ok(())
 }
 
+/// Memory per particle of the stage [bytes]: the particles read from the packing (33 B), the
+/// spheres of the raster (`WorldSphere`) and its bins (8 B for each of the at most 4 x 4
+/// blocks a disk spans; a sphere up to 4 x 4 x 4), the cell list of the bridge search and of
+/// the bridges (2 x 24 B), and the bridges: a particle bridges at most ~6 neighbours within
+/// the gap (3 pairs per particle), each a `Bridge` in a vector that may have doubled.
+fn per_particle_bytes() -> u64 {
+    33 + std::mem::size_of::<WorldSphere>() as u64
+        + 8 * 64
+        + 2 * 24
+        + 3 * 2 * std::mem::size_of::<Bridge>() as u64
+}
+
 /// Bridges between every pair of particles whose surface gap is at most `max_gap`
 /// (sec. II.B), pairs in increasing (i, j) order. Periodic partners are taken at their
 /// nearest image. `poll(done, total)` is called every 1024 particles and may stop the search
@@ -346,15 +358,17 @@ impl TypedStage for Bridges {
             }
         }
         let grid = edge.map(|e| crop_grid(dim, centre, e, p.voxel_for(e)));
+        // Per voxel: the raster's (label, particle id) pairs (8 B), the labels (1 B) and ids
+        // (4 B) split off them, then the f32 `particles` field (4 B) while the ids live:
+        // at most 14 B.
         let bytes = match &grid {
             Some(g) => {
                 p.check_grid(g)?;
-                2 * g.voxel_count() as u64
+                14 * g.voxel_count() as u64
             }
-            None => 2 * (p.resolution as u64).pow(dim as u32),
-        } + 200 * up.map(|m| m.count_estimate).unwrap_or(0);
-        // The particle-identity field: 4 bytes per voxel, and the raster's (label, id) pairs.
-        let bytes = bytes + 12 * grid.as_ref().map_or(0, |g| g.voxel_count() as u64);
+            None => 14 * (p.resolution as u64).pow(dim as u32),
+        } + per_particle_bytes() * up.map(|m| m.count_estimate).unwrap_or(0)
+            + (64 << 10);
         let image = match &grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g.clone()),
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),

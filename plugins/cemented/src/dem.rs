@@ -695,8 +695,15 @@ pub fn overlapping_pairs(pos: &[[f64; 3]], radius: &[f64]) -> Vec<(usize, usize)
     if n == 0 {
         return Vec::new();
     }
-    let lo = [0, 1, 2].map(|a| pos.iter().map(|c| c[a]).fold(f64::INFINITY, f64::min) - 1.0);
-    let hi = [0, 1, 2].map(|a| pos.iter().map(|c| c[a]).fold(f64::NEG_INFINITY, f64::max) + 1.0);
+    // The cell list spans the centres padded by the largest radius (a fixed 1 m margin gave
+    // millimetre grains a box of ~1000^3 cells, capped at MAX_CELLS: 400 MB of empty cells).
+    let pad = radius
+        .iter()
+        .cloned()
+        .fold(0.0, f64::max)
+        .max(f64::MIN_POSITIVE);
+    let lo = [0, 1, 2].map(|a| pos.iter().map(|c| c[a]).fold(f64::INFINITY, f64::min) - pad);
+    let hi = [0, 1, 2].map(|a| pos.iter().map(|c| c[a]).fold(f64::NEG_INFINITY, f64::max) + pad);
     let pairs = build_pairs(pos, radius, lo, [0, 1, 2].map(|a| hi[a] - lo[a]), 0.0, &[]);
     pairs
         .iter()
@@ -706,6 +713,25 @@ pub fn overlapping_pairs(pos: &[[f64; 3]], radius: &[f64]) -> Vec<(usize, usize)
         })
         .map(|p| (p.i as usize, p.j as usize))
         .collect()
+}
+
+/// Peak memory of compacting `n` particles [bytes]. Per particle: the particles read from
+/// the packing (position, radius, class: 33 B), the integrator's arrays (position, its
+/// reference copy, velocity, spin, force, torque: 6 x 24 B; true mass, mass, inertia: 24 B;
+/// the per-particle force sums: 80 B), the CSR start (8 B), the cell list (4 B per particle
+/// plus at most one 24 B cell per particle, as cells are at least one diameter wide) and the
+/// output (a `Body` per particle, the coordination arrays). Pairs: a disk touches at most 6
+/// neighbours of its size within the skin (a sphere 12), i.e. 3 (2-D) or 6 (3-D) pairs per
+/// particle; with bidisperse sizes small ones crowd a large one, and the dimension is only
+/// known at run time, so 8 are counted. Each pair is a 120 B `Pair` and two 8 B CSR entries, and the Verlet rebuild holds
+/// the old and the new list: 2 x 136 B per pair. The final overlap count builds one more
+/// pair list and its (i, j) copy (16 B per pair).
+fn memory(n: u64) -> u64 {
+    let body = std::mem::size_of::<Body>() as u64;
+    let per_particle = 33 + 6 * 24 + 24 + 80 + 8 + 4 + 24 + body + 8 + 8 + 1 + 8;
+    let pairs_per_particle = 8;
+    let per_pair = 2 * (std::mem::size_of::<Pair>() as u64 + 16) + 16;
+    n * (per_particle + pairs_per_particle * per_pair) + 64 * 1024
 }
 
 pub struct Compact;
@@ -780,7 +806,7 @@ impl TypedStage for Compact {
         if let Some(l) = up.and_then(|m| m.length_scale) {
             meta = meta.with_length_scale(l);
         }
-        Ok(Preflight::from_info(&self.info(), 400 * n + 4096)
+        Ok(Preflight::from_info(&self.info(), memory(n))
             .announce("packing", meta)
             .announce(
                 "report",

@@ -344,7 +344,14 @@ impl TypedStage for Pores {
             .and_then(|m| m.grid.as_ref())
             .map(|g| g.voxel_count() as u64)
             .unwrap_or(0);
-        Ok(Preflight::from_info(&self.info(), 12 * voxels)
+        let particles = inputs.get("packing").map(|m| m.count_estimate).unwrap_or(0);
+        // Per voxel: the pore, void and contact-wall masks (3 x 1 B) and the component ids of
+        // the two labelings held at once (2 x 4 B), plus their per-component tables (below a
+        // byte per voxel). Per particle: the particles (33 B), the cell list (~32 B), and the
+        // contacts within the horizon (a `(usize, usize, [f64; 3])` of 40 B; up to 4 per
+        // particle where small disks ring a large one, in a vector that may have doubled).
+        let memory = 12 * voxels + (33 + 32 + 4 * 2 * 40) * particles + (64 << 10);
+        Ok(Preflight::from_info(&self.info(), memory)
             .announce(
                 "summary",
                 ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1])),

@@ -407,7 +407,14 @@ fn harmonics_memory_estimate_is_within_2x_of_the_bytes_held() {
             .sum();
         let held = labels as f64 + 1024.0 * count as f64;
         println!("count {count} rotate {rotate}: estimate {est:.3e} B, labels {labels} B");
-        assert!(est >= 0.5 * held && est <= 2.0 * held, "{est} vs {held}");
+        // Beyond what the output holds the estimate counts, per worker thread, the grain in
+        // flight (its mask and labels, its radius table, the table's copy and vertices:
+        // about 1 MiB at the default degree) and 64 KiB of tables.
+        let in_flight = rayon::current_num_threads() as f64 * 1.5 * (1 << 20) as f64;
+        assert!(
+            est >= 0.5 * held && est <= 2.0 * held + in_flight + (64 << 10) as f64,
+            "{est} vs {held}"
+        );
     }
 }
 

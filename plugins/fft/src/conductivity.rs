@@ -193,8 +193,15 @@ impl TypedStage for ConductivityFft {
         let n = bc.solved_grid(&grid).voxel_count() as u64;
         let mirrored_labels = if bc.voxel_factor() > 1 { n } else { 0 };
         let cases = p.load_cases.len() as u64;
+        // Per rayon task, the transform of one plane (complex, in and out: 4 reals per plane
+        // voxel; twice the threads counted, as in elasticity.fft), and the tables.
+        let solved = bc.solved_grid(&grid);
+        let plane = (solved.dims[0] * solved.dims[1]) as u64;
+        let real = if p.precision == Precision::F64 { 8 } else { 4 };
+        let threads = rayon::current_num_threads() as u64;
+        let extra = 2 * threads * plane * 4 * real + (64 << 10);
         Ok(
-            Preflight::from_info(&self.info(), memory(p, n) + mirrored_labels)
+            Preflight::from_info(&self.info(), memory(p, n) + mirrored_labels + extra)
                 .announce(
                     "conductivity",
                     ArtifactMeta::of(ArtifactKind::Tensor).with_count(9, Some([9, 9])),

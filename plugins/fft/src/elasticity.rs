@@ -22,7 +22,7 @@ use crate::kernel::composite::{laminate_stiffness, majority_pore_stiffness, Comp
 use crate::kernel::constants::{self, Class, ENGINEERING_NAMES};
 use crate::kernel::elastic::{bytes_per_voxel, Elastic};
 use crate::kernel::solver::{solve, SolveError, SolveOptions};
-use crate::kernel::Iso;
+use crate::kernel::{Iso, Scheme};
 use crate::real::Real;
 use grainpipe_core::boundary::{crop_lower, BoundaryParams};
 use grainpipe_core::subvoxel::{InterfaceParams, Interfaces, PoreVoxels};
@@ -267,22 +267,41 @@ impl TypedStage for ElasticityFft {
         let n = bc.solved_grid(&grid).voxel_count() as u64;
         let mirrored_labels = if bc.voxel_factor() > 1 { n } else { 0 };
         let cases = p.load_cases.len() as u64;
-        let mut pf = Preflight::from_info(&self.info(), memory(p, n) + mirrored_labels)
-            .announce(
-                "stiffness",
-                ArtifactMeta::of(ArtifactKind::Tensor).with_count(36, Some([36, 36])),
-            )
-            .announce(
-                "constants",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(4, Some([4, 4])),
-            )
-            .announce(
-                "history",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(
-                    cases * 50,
-                    Some([cases, cases * (p.max_iterations as u64 + 1)]),
-                ),
-            );
+        let solved = bc.solved_grid(&grid);
+        let plane = (solved.dims[0] * solved.dims[1]) as u64;
+        let real = if p.precision == Precision::F64 { 8 } else { 4 };
+        let threads = rayon::current_num_threads() as u64;
+        // Per rayon task, the transform of one plane of the three components (complex, in and
+        // out: 12 reals per plane voxel); `map_init` makes one per task and a thread can hold
+        // a stolen task's beside its own, so twice the threads are counted; with the staggered scheme, per solve the rings
+        // of 18 planes per slab (two slabs per thread, at least 8 planes deep) beyond the one
+        // scalar per voxel `memory` counts for them (small images have fewer planes).
+        let mut extra = 2 * threads * plane * 12 * real;
+        if p.discretization.scheme() == Scheme::Staggered {
+            let nz = solved.dims[2] as u64;
+            let slabs = (2 * threads).min(nz / 8).max(1);
+            let lanes = concurrent_cases(p.load_cases.len(), memory(p, n)) as u64;
+            extra += lanes * (slabs * 18).saturating_sub(nz) * plane * real;
+        }
+        let mut pf = Preflight::from_info(
+            &self.info(),
+            memory(p, n) + mirrored_labels + extra + (64 << 10),
+        )
+        .announce(
+            "stiffness",
+            ArtifactMeta::of(ArtifactKind::Tensor).with_count(36, Some([36, 36])),
+        )
+        .announce(
+            "constants",
+            ArtifactMeta::of(ArtifactKind::Table).with_count(4, Some([4, 4])),
+        )
+        .announce(
+            "history",
+            ArtifactMeta::of(ArtifactKind::Table).with_count(
+                cases * 50,
+                Some([cases, cases * (p.max_iterations as u64 + 1)]),
+            ),
+        );
         if p.fields {
             for port in ["strain", "stress"] {
                 pf = pf.announce(

@@ -200,10 +200,12 @@ impl TypedStage for Rsa {
             _ => packing.with_length_scale(2.0 * p.radius.mean()),
         };
         let report = ArtifactMeta::of(ArtifactKind::Table).with_count(1, Some([1, 1]));
-        // Bodies (~200 bytes each with their cell entry) and the cell list's empty cells.
+        // Bodies (~200 bytes each with their cell entry), the cell list's empty cells and
+        // the report.
         let memory = (count as u64)
             .saturating_mul(200)
-            .saturating_add(cells.saturating_mul(CELL_BYTES));
+            .saturating_add(cells.saturating_mul(CELL_BYTES))
+            .saturating_add(64 << 10);
         Ok(Preflight::from_info(&self.info(), memory)
             .announce("packing", packing)
             .announce("report", report))

@@ -175,7 +175,21 @@ impl TypedStage for Voxelize {
                         format!("{n:.3e} voxels: more than {MAX_VOXELS:.0e}; use a larger voxel"),
                     ));
                 }
-                memory = n as u64 * (1 + p.subvoxel.bytes_per_voxel(2));
+                // The label array (1 B per voxel, moved into the image) and the sub-voxel
+                // field; per worker thread one plane of sample slots (4 B per voxel) and of
+                // sub-sample masks (8 B per 64 samples, every voxel of a plane cut at worst);
+                // per sphere its bounds (48 B) and up to 8 periodic images (80 B) listed in
+                // the slabs (of 8 planes) they span, two on average.
+                let plane: f64 = (0..2)
+                    .map(|a| ((hi[a] - lo[a]) / v).round().max(1.0))
+                    .product();
+                let samples = (p.supersampling * p.supersampling * p.supersampling) as u64;
+                let threads = rayon::current_num_threads() as u64;
+                let spheres = meta.map(|m| m.count_estimate).unwrap_or(0);
+                memory = n as u64 * (1 + p.subvoxel.bytes_per_voxel(2))
+                    + threads * plane as u64 * (4 + 8 * samples.div_ceil(64))
+                    + spheres * (48 + 8 * 2 * 80)
+                    + (64 << 10);
                 // The grid is known when the voxel size is: given, or derived from a mean
                 // diameter the packing fixes exactly (a length scale is only an estimate of the
                 // diameter the run measures). The run then uses this voxel size.

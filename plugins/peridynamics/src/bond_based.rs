@@ -835,7 +835,11 @@ impl TypedStage for BondBased {
         }
         let layout = crate::lattice::Layout::new(grid.dims, h);
         let bpn = bytes_per_node(dim3, layout.offsets.len(), p.breaking);
-        let bytes = bpn * layout.len() as f64;
+        // Per node (above), plus the dense factor of the multigrid's coarsest level (counted
+        // always, as the multigrid itself) and the tables.
+        let bytes = bpn * layout.len() as f64
+            + crate::multigrid::dense_bytes(grid.dims, if dim3 { 3 } else { 2 }) as f64
+            + (64 << 10) as f64;
         let limit = if p.memory_limit_gib > 0.0 {
             Some(p.memory_limit_gib * (1u64 << 30) as f64)
         } else {

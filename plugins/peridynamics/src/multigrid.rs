@@ -298,6 +298,19 @@ const FINE_OMEGA_MAX: f64 = 0.95;
 /// Coarsen until a level holds at most this many DOFs (then dense Cholesky).
 const DENSE_DOFS: usize = 1024;
 
+/// Heap bytes of the dense Cholesky factor of the coarsest level of a fine grid of `dims`
+/// nodes with `nc` components, for memory estimates: the levels halve every axis (level 1
+/// always) until at most [`DENSE_DOFS`] DOFs remain; the factor is a full m x m f64 matrix of
+/// those m DOFs, with their index list and position map (~40 B per DOF).
+pub fn dense_bytes(dims: [usize; 3], nc: usize) -> u64 {
+    let mut d = dims.map(|n| n.div_ceil(2));
+    while d.iter().product::<usize>() * nc > DENSE_DOFS && !d.iter().all(|&n| n <= 1) {
+        d = d.map(|n| n.div_ceil(2));
+    }
+    let m = (d.iter().product::<usize>() * nc) as u64;
+    8 * m * m + 40 * m
+}
+
 impl Multigrid {
     /// Builds the hierarchy for the free DOFs of `lat` (prescribed components and nodes
     /// without material excluded).

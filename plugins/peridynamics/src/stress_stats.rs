@@ -409,8 +409,11 @@ impl TypedStage for StressStats {
         let bytes = i
             .get("stress")
             .and_then(|m| m.grid.as_ref())
-            .map(|g| g.voxel_count() as u64 * 8)
-            .unwrap_or(0);
+            // One f64 per node, gathered per phase into vectors grown by doubling: up to
+            // 16 B per voxel; plus the tables.
+            .map(|g| g.voxel_count() as u64 * 16)
+            .unwrap_or(0)
+            + (64 << 10);
         Ok(Preflight::from_info(&self.info(), bytes).announce(
             "pdf",
             ArtifactMeta::of(ArtifactKind::Table)

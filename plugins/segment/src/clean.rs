@@ -1,7 +1,7 @@
 //! `segment.clean`: removes specks, fills holes and relabels a phase image (kernels in
 //! [`crate::morph`]).
 
-use crate::common::VoxelsOr;
+use crate::common::{VoxelsOr, TABLES_BYTES};
 use crate::morph::{fill_holes, relabel, remove_specks, Reassigned};
 use grainpipe_core::units::Volume;
 use grainpipe_core::{
@@ -102,13 +102,15 @@ impl TypedStage for Clean {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g),
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),
         };
-        Ok(Preflight::from_info(&self.info(), 6 * voxels)
-            .announce("image", meta)
-            .announce(
-                "summary",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(2, Some([2, 2])),
-            )
-            .with_plan(CleanPlan { map }))
+        Ok(
+            Preflight::from_info(&self.info(), 6 * voxels + TABLES_BYTES)
+                .announce("image", meta)
+                .announce(
+                    "summary",
+                    ArtifactMeta::of(ArtifactKind::Table).with_count(2, Some([2, 2])),
+                )
+                .with_plan(CleanPlan { map }),
+        )
     }
 
     fn run(

@@ -196,8 +196,13 @@ pub fn connected_input(i: &InputMetas) -> Result<(&'static str, ArtifactKind, Gr
     Ok((port, kind, grid))
 }
 
+/// What a segmentation step holds beside its voxel arrays: the phase table and metadata of
+/// the output, the summary tables, the histograms (tens of KiB; rounded up).
+pub const TABLES_BYTES: u64 = 64 << 10;
+
 /// The preflight of a stage that takes either a phase image or a field: only the output named
-/// like the connected input `port`, announced as `kind` on the output `grid`.
+/// like the connected input `port`, announced as `kind` on the output `grid`. The memory is
+/// `memory_bytes` (the stage's arrays) plus [`TABLES_BYTES`].
 pub fn image_or_field_preflight(
     info: &StageInfo,
     memory_bytes: u64,
@@ -205,7 +210,7 @@ pub fn image_or_field_preflight(
     kind: ArtifactKind,
     grid: &Grid,
 ) -> Preflight {
-    let mut pf = Preflight::from_info(info, memory_bytes);
+    let mut pf = Preflight::from_info(info, memory_bytes + TABLES_BYTES);
     pf.outputs.retain(|k, _| k == port);
     pf.announce(port, ArtifactMeta::on_grid(kind, grid.clone()))
 }

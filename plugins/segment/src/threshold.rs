@@ -2,7 +2,7 @@
 //! histogram (Otsu 1979; three classes by exhaustive search, Liao et al. 2001). Kernels in
 //! [`crate::otsu`].
 
-use crate::common::scalar_values;
+use crate::common::{scalar_values, TABLES_BYTES};
 use crate::otsu::{finite_range, histogram, multi_otsu3, otsu};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, InputMetas, Inputs, Outputs, ParamChoice,
@@ -248,13 +248,15 @@ impl TypedStage for Threshold {
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),
         };
         let rows = n as u64;
-        Ok(Preflight::from_info(&self.info(), 9 * voxels)
-            .announce("image", image)
-            .announce(
-                "classes",
-                ArtifactMeta::of(ArtifactKind::Table).with_count(rows, Some([rows, rows])),
-            )
-            .with_plan(ThresholdPlan { labels, names }))
+        Ok(
+            Preflight::from_info(&self.info(), 9 * voxels + TABLES_BYTES)
+                .announce("image", image)
+                .announce(
+                    "classes",
+                    ArtifactMeta::of(ArtifactKind::Table).with_count(rows, Some([rows, rows])),
+                )
+                .with_plan(ThresholdPlan { labels, names }),
+        )
     }
 
     fn run(

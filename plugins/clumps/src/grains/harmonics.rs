@@ -104,13 +104,16 @@ pub struct HarmonicsPlan {
 const PER_GRAIN_OVERHEAD: f64 = 1024.0;
 
 /// Peak bytes of a run: the output labels (one byte per voxel of every grain's box) plus,
-/// per worker thread, one grain in flight (its bool mask and its u8 labels), plus the
-/// tables. Nothing else scales with the count: grains are turned into their output item as
-/// soon as they are voxelized.
-fn peak_bytes(boxes: &[f64], threads: usize) -> u64 {
+/// per worker thread, one grain in flight (its bool mask and its u8 labels, and its shape:
+/// a copy of the radius table of `table_bytes` and the table's vertices for the volume and
+/// area, three f64 per entry: 4 x `table_bytes`), plus the tables. Nothing else scales with
+/// the count: grains are turned into their output item as soon as they are voxelized.
+fn peak_bytes(boxes: &[f64], threads: usize, table_bytes: f64) -> u64 {
     let total: f64 = boxes.iter().sum();
     let largest = boxes.iter().copied().fold(0.0, f64::max);
-    (total + boxes.len() as f64 * PER_GRAIN_OVERHEAD + 2.0 * largest * threads as f64) as u64
+    let in_flight = 2.0 * largest + 4.0 * table_bytes;
+    (total + boxes.len() as f64 * PER_GRAIN_OVERHEAD + in_flight * threads as f64) as u64
+        + (64 << 10)
 }
 
 /// Voxels of the box [`StarShape::voxelize`] allocates for extents `e` (before the empty
@@ -264,7 +267,11 @@ impl HarmonicsParams {
             natural,
             pick,
             targets,
-            bytes: peak_bytes(&boxes, rayon::current_num_threads()),
+            bytes: peak_bytes(
+                &boxes,
+                rayon::current_num_threads(),
+                ((nt + 1) * 2 * nt * 8) as f64,
+            ),
         })
     }
 }

@@ -215,9 +215,10 @@ impl TypedStage for FromLabels {
             check_cubic(port, g.spacing)?;
         }
         // The number of grains is known only once the labels are read; the memory is the
-        // label volume's.
+        // label volume's (10 B per voxel: masks, component ids, the grains' images) and the
+        // per-grain tables (64 KiB, rounded up).
         let mut pf = preflight_grains(&self.info(), None, 0.0, None);
-        pf.memory_bytes = mem;
+        pf.memory_bytes = mem + (64 << 10);
         Ok(pf)
     }
     fn run(

@@ -74,7 +74,36 @@ impl TypedStage for FromMeshes {
             }
             paths.push(path);
         }
-        Ok(preflight_grains(&self.info(), Some(p.files.len()), 1e5, None).with_plan(paths))
+        // Memory from the meshes themselves (read here for their boxes): per grain its
+        // mask and its labels (2 B per voxel of its box, kept: the grains are kept); for the
+        // grain being voxelized its ray crossings (a 24 B vector and ~2 crossings of 8 B per
+        // y-z row of its box) and its mesh (vertices and triangles, 48 B per vertex and
+        // triangle, and the edge map of the closedness check, ~64 B per edge, 1.5 per
+        // triangle).
+        let h = p.voxel_size.si();
+        let mut voxels = 0.0;
+        let mut in_flight: f64 = 0.0;
+        for path in &paths {
+            let m = Mesh::read(path).map_err(|e| StageError::param("files", e))?;
+            let s = p.mesh_unit.si();
+            let mut lo = [f64::INFINITY; 3];
+            let mut hi = [f64::NEG_INFINITY; 3];
+            for v in &m.vertices {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(v[a] * s);
+                    hi[a] = hi[a].max(v[a] * s);
+                }
+            }
+            let dims = [0, 1, 2].map(|a| ((hi[a] - lo[a]) / h).max(0.0) + 3.0);
+            voxels += dims[0] * dims[1] * dims[2];
+            let rows = dims[1] * dims[2];
+            let mesh = 24.0 * (m.vertices.len() + m.triangles.len()) as f64
+                + 96.0 * m.triangles.len() as f64;
+            in_flight = in_flight.max(40.0 * rows + mesh);
+        }
+        let mut pf = preflight_grains(&self.info(), Some(p.files.len()), 0.0, None);
+        pf.memory_bytes = (2.0 * voxels + in_flight) as u64 + (64 << 10);
+        Ok(pf.with_plan(paths))
     }
     fn run(
         &self,

@@ -263,10 +263,18 @@ impl TypedStage for Synthetic {
         // one empty layer each side) on every axis.
         let stretch = (p.length_to_thickness.powi(2) / p.width_to_thickness).cbrt();
         let edge = law.mean() * stretch * (2.0 * p.roughness).exp() / p.voxel_size.si() + 3.0;
-        Ok(
-            preflight_grains(&self.info(), Some(p.count), edge.powi(3), Some(law.mean()))
-                .with_plan(law),
-        )
+        // The output labels of every grain (1 B per voxel of its box, the grain's mask is
+        // dropped as its image is made) and ~1 KiB of tables per grain; per worker thread one
+        // grain in flight: its mask (1 B per voxel) and its shape, the radius table of
+        // (nt + 1) x 2 nt f64, a copy, and its vertices for the volume (3 f64 per entry).
+        let boxes = edge.powi(3);
+        let nt = (4 * p.max_degree).max(60) as f64;
+        let table = (nt + 1.0) * 2.0 * nt * 8.0;
+        let threads = rayon::current_num_threads() as f64;
+        let memory = p.count as f64 * (boxes + 1024.0) + threads * (boxes + 5.0 * table);
+        let mut pf = preflight_grains(&self.info(), Some(p.count), 0.0, Some(law.mean()));
+        pf.memory_bytes = memory as u64 + (64 << 10);
+        Ok(pf.with_plan(law))
     }
     fn run(
         &self,
