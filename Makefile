@@ -14,7 +14,7 @@ MORE_PIPELINES := pipelines/spheres.yaml pipelines/powderbed.yaml pipelines/clum
 	pipelines/binder.yaml pipelines/elasticity.yaml pipelines/permeability.yaml pipelines/sandcore-quick.yaml \
 	pipelines/sandcore-spheres.yaml pipelines/sandcore-paper.yaml pipelines/cemented2d.yaml pipelines/cemented3d.yaml
 
-.PHONY: all sysdeps pydeps build demo demo-all test lint rust-test interop python python-test docs-test bench readme-stages clean test-cluster validate-sandcore validate-sandcore-unseen validate-sandcore-ablation
+.PHONY: all sysdeps pydeps build demo demo-all test lint rust-test interop python python-test docs-test bench readme-stages clean test-cluster validate-sandcore validate-sandcore-unseen validate-sandcore-synthetic validate-sandcore-ablation
 
 all: build
 
@@ -108,6 +108,9 @@ validate-sandcore: build $(VALIDATE_VENV)/.installed
 
 validate-sandcore-unseen: build $(VALIDATE_VENV)/.installed
 	PIPE=$(PIPE) PYTHON=$(VALIDATE_VENV)/bin/python validate/sandcore.sh unseen
+
+validate-sandcore-synthetic: build $(VALIDATE_VENV)/.installed
+	PIPE=$(PIPE) PYTHON=$(VALIDATE_VENV)/bin/python validate/sandcore.sh synthetic
 
 validate-sandcore-ablation: build $(VALIDATE_VENV)/.installed
 	PIPE=$(PIPE) PYTHON=$(VALIDATE_VENV)/bin/python validate/sandcore.sh ablation
