@@ -13,7 +13,8 @@ use std::fmt::Write;
 pub fn svg(f: &Figure, class: &str, attrs: &[(&str, String)]) -> String {
     match f.svg(class) {
         Ok(s) => {
-            let mut a = String::new();
+            // A log y axis says so (the browser tests and readers of the page look for it).
+            let mut a = String::from(if f.y_log { " data-y-scale=\"log\"" } else { "" });
             for (k, v) in attrs {
                 let _ = write!(a, " {k}=\"{}\"", esc(v));
             }
@@ -154,10 +155,7 @@ pub fn history_charts(it: &Item, tolerance: Option<f64>) -> Vec<String> {
         out.push(svg(
             &f,
             "chart convergence",
-            &[
-                ("data-y-scale", "log".into()),
-                ("data-source", it.source.clone()),
-            ],
+            &[("data-source", it.source.clone())],
         ));
     }
     if let (Some(en), Some(itc)) = (col("energy"), col("iteration")) {
@@ -186,10 +184,7 @@ pub fn history_charts(it: &Item, tolerance: Option<f64>) -> Vec<String> {
         out.push(svg(
             &f,
             "chart convergence",
-            &[
-                ("data-y-scale", "log".into()),
-                ("data-source", it.source.clone()),
-            ],
+            &[("data-source", it.source.clone())],
         ));
     }
     if let Some(t) = col("time") {
