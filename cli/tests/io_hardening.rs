@@ -8,11 +8,20 @@ use std::path::Path;
 use std::process::Command;
 
 fn pipe(args: &[&str], dir: &Path) -> (i32, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_pipe"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .expect("pipe runs");
+    // Spawned under the HDF5 lock: a child forked while another test holds an HDF5 file open
+    // inherits its descriptor and with it the library's file lock, so a later `pipe` opening
+    // that file fails with "NetCDF: HDF error" (seen once in CI).
+    let child = {
+        let _g = hdf5_lock();
+        Command::new(env!("CARGO_BIN_EXE_pipe"))
+            .args(args)
+            .current_dir(dir)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .expect("pipe runs")
+    };
+    let out = child.wait_with_output().expect("pipe runs");
     (
         out.status.code().unwrap_or(-1),
         String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -29,7 +38,7 @@ fn import_yaml(stage: &str, with: &str) -> String {
 // ------------------------------------------------------------------ A: declared sizes
 
 /// The HDF5 library (under NetCDF-4 too) is not thread-safe: tests write their files one at
-/// a time.
+/// a time, and no child process is spawned while one of them is open (see `pipe`).
 static HDF5: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
 fn hdf5_lock() -> std::sync::MutexGuard<'static, ()> {
@@ -89,6 +98,49 @@ fn a_small_netcdf_declaring_4000_cubed_is_refused_by_the_memory_check_not_read()
     .unwrap();
     let (code, _, err) = pipe(&["validate", "p.yaml"], d.path());
     assert_eq!(code, 2, "{err}");
+    assert!(err.contains("of memory but"), "{err}");
+}
+
+/// A process that inherited an open NetCDF-4 file (here a child forked while the file was
+/// being written) keeps HDF5's lock on it: the import names the likely cause and the way out,
+/// and with that way out the file reaches the memory check.
+#[test]
+fn a_netcdf_file_locked_by_another_process_names_the_lock() {
+    let d = tempfile::tempdir().unwrap();
+    let p = d.path().join("big.nc");
+    let mut holder = {
+        let _g = hdf5_lock();
+        let mut f = netcdf::create(&p).unwrap();
+        for n in ["z", "y", "x"] {
+            f.add_dimension(n, 4000).unwrap();
+        }
+        f.add_variable::<i16>("labels", &["z", "y", "x"]).unwrap();
+        Command::new("sleep").arg("60").spawn().unwrap()
+    };
+    std::fs::write(
+        d.path().join("p.yaml"),
+        import_yaml(
+            "import.netcdf",
+            "{path: big.nc, variable: labels, spacing: 1 um}",
+        ),
+    )
+    .unwrap();
+    let (code, _, err) = pipe(&["validate", "p.yaml"], d.path());
+    let unlocked = Command::new(env!("CARGO_BIN_EXE_pipe"))
+        .args(["validate", "p.yaml"])
+        .current_dir(d.path())
+        .env("HDF5_USE_FILE_LOCKING", "FALSE")
+        .output()
+        .unwrap();
+    holder.kill().ok();
+    holder.wait().ok();
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("open for writing") && err.contains("HDF5_USE_FILE_LOCKING=FALSE"),
+        "{err}"
+    );
+    let err = String::from_utf8_lossy(&unlocked.stderr);
+    assert_eq!(unlocked.status.code(), Some(2), "{err}");
     assert!(err.contains("of memory but"), "{err}");
 }
 

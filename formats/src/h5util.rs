@@ -11,6 +11,31 @@ fn vlu(s: &str) -> H5Result<VarLenUnicode> {
         .map_err(|e| hdf5_metno::Error::from(e.to_string()))
 }
 
+/// "`path`: cannot open as `format`: `err`", with the likely cause when it is HDF5's file
+/// lock: a file another process holds open for writing (or a process forked while it was
+/// open, which inherits the lock) cannot be opened, and NetCDF-4 reports that only as "HDF
+/// error".
+pub(crate) fn cannot_open(
+    path: &std::path::Path,
+    format: &str,
+    err: &dyn std::fmt::Display,
+) -> String {
+    let err = err.to_string();
+    let mut head = [0u8; 8];
+    let hdf5_signature = std::fs::File::open(path)
+        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut head))
+        .is_ok()
+        && &head == b"\x89HDF\r\n\x1a\n";
+    let locked = err.contains("lock") || (err.contains("HDF error") && hdf5_signature);
+    let hint = if locked {
+        "; if another program has the file open for writing, HDF5's file lock refuses to read \
+         it: close it there, or set HDF5_USE_FILE_LOCKING=FALSE"
+    } else {
+        ""
+    };
+    format!("{}: cannot open as {format}: {err}{hint}", path.display())
+}
+
 /// Deflate level the HDF5, VTKHDF and NetCDF writers use unless told otherwise: level 4
 /// gives nearly all of level 9's size on voxel images at a fraction of its time.
 pub const DEFAULT_DEFLATE: u8 = 4;

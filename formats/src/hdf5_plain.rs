@@ -432,7 +432,7 @@ fn write_tensor(g: &Group, t: &Tensor, z: u8) -> H5Result<()> {
 // Readers
 
 fn open(path: &Path) -> Result<File, String> {
-    File::open(path).map_err(|e| format!("{}: cannot open as HDF5: {e}", path.display()))
+    File::open(path).map_err(|e| crate::h5util::cannot_open(path, "HDF5", &e))
 }
 
 fn at(path: &Path) -> impl Fn(hdf5_metno::Error) -> String + '_ {

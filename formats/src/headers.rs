@@ -61,8 +61,8 @@ pub fn volume_geometry(v: &Volume) -> Geometry {
 /// ImageJ's `element_size_um` (z, y, x in micrometres), `origin`, `periodic`.
 pub fn hdf5_header(path: &Path, dataset: &str) -> Result<Header, String> {
     let probe = crate::hdf5_plain::probe_hdf5_dataset(path, dataset)?;
-    let f = hdf5_metno::File::open(path)
-        .map_err(|e| format!("{}: cannot open as HDF5: {e}", path.display()))?;
+    let f =
+        hdf5_metno::File::open(path).map_err(|e| crate::h5util::cannot_open(path, "HDF5", &e))?;
     let ds = f
         .dataset(dataset)
         .map_err(|e| format!("{}: no dataset `{dataset}` ({e})", path.display()))?;
@@ -86,7 +86,7 @@ pub fn hdf5_header(path: &Path, dataset: &str) -> Result<Header, String> {
 pub fn netcdf_header(path: &Path, var: &str) -> Result<Header, String> {
     let probe = crate::netcdf_io::probe_netcdf_variable(path, var)?;
     let at = |e: String| format!("{}: {e}", path.display());
-    let f = netcdf::open(path).map_err(|e| at(format!("cannot open as NetCDF: {e}")))?;
+    let f = netcdf::open(path).map_err(|e| crate::h5util::cannot_open(path, "NetCDF", &e))?;
     let v = f
         .variable(var)
         .ok_or_else(|| at(format!("no variable `{var}`")))?;

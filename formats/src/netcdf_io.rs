@@ -192,7 +192,7 @@ fn attr_str(v: Option<netcdf::Result<AttributeValue>>) -> Option<String> {
 pub fn probe_netcdf_variable(path: &Path, var: &str) -> Result<Probe, String> {
     let at = |e: String| format!("{}: {e}", path.display());
     quiet_hdf5();
-    let f = netcdf::open(path).map_err(|e| at(format!("cannot open as NetCDF: {e}")))?;
+    let f = netcdf::open(path).map_err(|e| crate::h5util::cannot_open(path, "NetCDF", &e))?;
     let v = f.variable(var).ok_or_else(|| at(missing(&f, var)))?;
     let lens: Vec<usize> = v.dimensions().iter().map(|d| d.len()).collect();
     let (dims, components) = shape(&lens).map_err(at)?;
@@ -231,7 +231,7 @@ fn shape(lens: &[usize]) -> NcResult<([usize; 3], usize)> {
 pub fn read_netcdf_variable(path: &Path, var: &str) -> Result<Volume, String> {
     let at = |e: String| format!("{}: {e}", path.display());
     quiet_hdf5();
-    let f = netcdf::open(path).map_err(|e| at(format!("cannot open as NetCDF: {e}")))?;
+    let f = netcdf::open(path).map_err(|e| crate::h5util::cannot_open(path, "NetCDF", &e))?;
     let v = f.variable(var).ok_or_else(|| at(missing(&f, var)))?;
     let lens: Vec<usize> = v.dimensions().iter().map(|d| d.len()).collect();
     let (dims, components) = shape(&lens).map_err(at)?;
@@ -305,7 +305,7 @@ pub fn scan_netcdf_variable(
 ) -> Result<(), String> {
     let at = |e: String| format!("{}: {e}", path.display());
     quiet_hdf5();
-    let f = netcdf::open(path).map_err(|e| at(format!("cannot open as NetCDF: {e}")))?;
+    let f = netcdf::open(path).map_err(|e| crate::h5util::cannot_open(path, "NetCDF", &e))?;
     let v = f.variable(var).ok_or_else(|| at(missing(&f, var)))?;
     let lens: Vec<usize> = v.dimensions().iter().map(|d| d.len()).collect();
     shape(&lens).map_err(at)?;
