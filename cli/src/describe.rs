@@ -287,6 +287,27 @@ pub fn pipeline_schema(r: &Registry) -> Value {
             "description": {"type": "string"},
             "seed": {"type": "integer", "minimum": 0, "description": "pipeline seed; each step derives its own stream from it and its id"},
             "plugins": {"type": "array", "items": {"type": "string"}, "description": "plugin libraries or directories to load"},
+            "reference": {
+                "type": "object",
+                "description": "published or independent values the results are compared with after the run (docs/report.md)",
+                "required": ["source", "values"],
+                "additionalProperties": false,
+                "properties": {
+                    "source": {"type": "string", "description": "where the values come from"},
+                    "note": {"type": "string"},
+                    "values": {"type": "array", "items": {
+                        "type": "object",
+                        "required": ["quantity", "value"],
+                        "additionalProperties": false,
+                        "properties": {
+                            "quantity": {"type": "string", "description": "step.port.column, step.port.column[row], step.port[k] or step.port.<component>"},
+                            "value": {"type": ["number", "string"], "description": "a number or a quantity with units"},
+                            "tolerance": {"type": ["number", "string"], "description": "relative (10 %, 0.1) or in the value's unit"},
+                            "range": {"type": "array", "minItems": 2, "maxItems": 2, "items": {"type": ["number", "string"]}, "description": "[lowest, highest] the result is judged against"}
+                        }
+                    }}
+                }
+            },
             "stages": {
                 "type": "array",
                 "items": {

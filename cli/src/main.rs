@@ -231,6 +231,13 @@ fn main() -> ExitCode {
                     engine::human_bytes(engine::export_memory_bytes(&plan, e))
                 );
             }
+            if let Some(r) = &doc.reference {
+                println!(
+                    "  reference: {} value(s) compared after the run ({})",
+                    r.values.len(),
+                    r.source
+                );
+            }
             println!(
                 "estimated memory: {}",
                 engine::human_bytes(plan.memory_bytes)
@@ -305,6 +312,9 @@ fn main() -> ExitCode {
             }
             if !quiet || result.is_err() {
                 eprint!("\n{}", observer.table());
+            }
+            if let (Some(r), Ok(res)) = (&doc.reference, &result) {
+                print_reference(r, res);
             }
             // The run record, also of a failed run; a record that cannot be written does not
             // fail a run whose exports were written.
@@ -516,5 +526,37 @@ fn cap_cache(dir: &std::path::Path, plan: &engine::Plan, quiet: bool) {
         ),
         Ok(_) => {}
         Err(e) => eprintln!("warning: cache not capped: {e}"),
+    }
+}
+
+/// The `reference:` comparison of a finished run, one line per value (printed also with
+/// --quiet: it is a result, not progress).
+fn print_reference(r: &grainpipe_core::values::Reference, res: &engine::RunResult) {
+    use grainpipe_core::values::Verdict;
+    eprintln!("reference ({}):", r.source);
+    for c in grainpipe_core::values::compare(r, &res.outputs) {
+        let what = c
+            .component
+            .as_deref()
+            .map(|k| format!(" ({k})"))
+            .unwrap_or_default();
+        let line = match (c.result, c.relative_difference) {
+            (Some(x), Some(d)) => format!(
+                "{:+.1} % ({x:.4e}{} against {}){}",
+                100.0 * d,
+                match c.unit.as_str() {
+                    "" | "1" => String::new(),
+                    u => format!(" {u}"),
+                },
+                c.reference_written,
+                match c.verdict {
+                    Verdict::Within => format!(", within {}", c.tolerance),
+                    Verdict::Outside => format!(", OUTSIDE {}", c.tolerance),
+                    _ => String::new(),
+                }
+            ),
+            _ => format!("not computed: {}", c.why),
+        };
+        eprintln!("  {}{what}: {line}", c.quantity);
     }
 }

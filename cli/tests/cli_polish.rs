@@ -427,3 +427,70 @@ fn warnings_are_recorded_in_the_run_and_shown_on_its_page() {
     assert!(page.contains("completed with 1 warning"), "status line");
     assert!(page.contains("<section id=\"warnings\""));
 }
+
+/// Issue 36: a pipeline's `reference:` values are compared with the run: printed at the end,
+/// recorded in run.json and shown on the page. The RSA places ceil(0.2 V / v) = 11 spheres of
+/// 20 um in (120 um)^3 (51.57 spheres fill it), so its fraction is 11 (4/3) pi 20^3 / 120^3
+/// = 0.2133180, 6.659 % above the 0.2 asked for: outside 1 %, within 10 %. A name the step
+/// does not give is reported with what it gives, in the syntax to write.
+#[test]
+fn reference_values_are_compared_recorded_and_shown() {
+    let dir = tempfile::tempdir().unwrap();
+    let yaml = format!(
+        "{}reference:\n  source: the asked fraction\n  values:\n    - {{quantity: pack.report.volume_fraction, value: 0.2, tolerance: 1 %}}\n    - {{quantity: pack.report.volume_fraction, value: 0.2, range: [0.19, 0.22]}}\n    - {{quantity: pack.report.fraction, value: 0.2}}\n",
+        SMALL
+    );
+    std::fs::write(dir.path().join("p.yaml"), yaml).unwrap();
+    let (code, _, err) = pipe(
+        &[
+            "run",
+            "p.yaml",
+            "--no-cache",
+            "--out",
+            "out/run",
+            "--report",
+        ],
+        dir.path(),
+    );
+    assert_eq!(code, 0, "{err}");
+    let exact = 11.0 * 4.0 / 3.0 * std::f64::consts::PI * 20f64.powi(3) / 120f64.powi(3);
+    assert!(err.contains("reference (the asked fraction):"), "{err}");
+    assert!(
+        err.contains("+6.7 % (2.1332e-1 against 0.2), OUTSIDE 1 %"),
+        "{err}"
+    );
+    let rec: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("out/run/run.json")).unwrap(),
+    )
+    .unwrap();
+    let rows = rec["reference"]["rows"]
+        .as_array()
+        .expect("reference recorded");
+    assert_eq!(rows.len(), 3);
+    let d = rows[0]["relative_difference"].as_f64().unwrap();
+    assert!((d - (exact - 0.2) / 0.2).abs() < 1e-9, "{d} vs {exact}");
+    assert_eq!(rows[0]["verdict"], "outside");
+    assert_eq!(rows[1]["verdict"], "within");
+    assert_eq!(rows[2]["verdict"], "missing");
+    assert!(
+        rows[2]["why"]
+            .as_str()
+            .unwrap()
+            .contains("pack.report.volume_fraction"),
+        "{}",
+        rows[2]["why"]
+    );
+    let page = std::fs::read_to_string(dir.path().join("out/run/report.html")).unwrap();
+    assert!(page.contains("<section id=\"reference\""));
+    assert!(page.contains("1 of 2 within their tolerance"));
+    // A pipeline without a reference block shows no comparison.
+    std::fs::write(dir.path().join("q.yaml"), SMALL).unwrap();
+    let (code, _, err) = pipe(
+        &["run", "q.yaml", "--no-cache", "--out", "out/q", "--report"],
+        dir.path(),
+    );
+    assert_eq!(code, 0, "{err}");
+    assert!(!err.contains("reference"), "{err}");
+    let page = std::fs::read_to_string(dir.path().join("out/q/report.html")).unwrap();
+    assert!(!page.contains("id=\"reference\""));
+}

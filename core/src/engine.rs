@@ -3,7 +3,7 @@
 //! exports or targets need, with a content-addressed cache.
 
 use crate::cache;
-use crate::model::Provenance;
+use crate::model::{ArtifactKind, Provenance};
 use crate::pipeline::{Loc, PipelineDoc, PipelineError, PortRef};
 use crate::registry::{closest, Exporter, Registry};
 use crate::stage::{
@@ -110,7 +110,8 @@ pub fn plan(
     let wiring = wire_steps(doc, &resolved.stages, &mut errs);
     let order = topological_order(doc, &wiring.wires, &mut errs);
     let exports = plan_exports(doc, registry, &resolved.stages, &mut errs);
-    let needed = needed_steps(doc, opts, &exports, &wiring.wires, &mut errs);
+    let referenced = check_reference(doc, &resolved.stages, &mut errs);
+    let needed = needed_steps(doc, opts, &exports, &referenced, &wiring.wires, &mut errs);
     let (mut steps, exec_order, mut memory) =
         preflight_steps(doc, &resolved, &wiring, &order, &needed, &mut errs);
     check_export_outputs(doc, &steps, &exports, &mut errs);
@@ -519,6 +520,7 @@ fn needed_steps(
     doc: &PipelineDoc,
     opts: &PlanOptions,
     exports: &[PlannedExport],
+    referenced: &[usize],
     wires: &[IndexMap<String, Wire>],
     errs: &mut Vec<PipelineError>,
 ) -> Vec<bool> {
@@ -539,6 +541,10 @@ fn needed_steps(
     }
     if roots.is_empty() {
         roots = (0..n).collect();
+    } else if opts.targets.is_empty() {
+        // The values `reference:` compares are computed even when nothing exports them (a
+        // `--target` run computes what its targets need and compares what it has).
+        roots.extend_from_slice(referenced);
     }
     while let Some(i) = roots.pop() {
         if !needed[i] {
@@ -547,6 +553,71 @@ fn needed_steps(
         }
     }
     needed
+}
+
+/// Each `reference:` quantity names a step of the pipeline and an output of its stage that
+/// holds values (a table or a tensor). Returns the steps they name.
+fn check_reference(
+    doc: &PipelineDoc,
+    stages: &[Option<Arc<dyn Stage>>],
+    errs: &mut Vec<PipelineError>,
+) -> Vec<usize> {
+    let Some(r) = &doc.reference else {
+        return Vec::new();
+    };
+    let mut steps = Vec::new();
+    for (v, &loc) in r.values.iter().zip(&doc.reference_locs) {
+        let Some((step, port, _)) = crate::values::split_quantity(&v.quantity) else {
+            continue;
+        };
+        let Some((i, _)) = doc.step(step) else {
+            errs.push(
+                err(
+                    doc,
+                    loc,
+                    format!("reference quantity `{}`: no step `{step}`", v.quantity),
+                )
+                .with_help(did_you_mean(closest(
+                    step,
+                    doc.steps.iter().map(|s| s.id.as_str()),
+                ))),
+            );
+            continue;
+        };
+        let Some(stage) = &stages[i] else {
+            continue;
+        };
+        let info = stage.info();
+        match info.outputs.iter().find(|o| o.name == port) {
+            None => errs.push(
+                err(
+                    doc,
+                    loc,
+                    format!(
+                        "reference quantity `{}`: step `{step}` ({}) has no output `{port}`",
+                        v.quantity, info.id
+                    ),
+                )
+                .with_help(did_you_mean(closest(
+                    port,
+                    info.outputs.iter().map(|o| o.name),
+                ))),
+            ),
+            Some(o) if !matches!(o.kind, ArtifactKind::Table | ArtifactKind::Tensor) => {
+                errs.push(err(
+                    doc,
+                    loc,
+                    format!(
+                        "reference quantity `{}`: `{step}.{port}` is a {}, which holds no single \
+                         values (name a table column or a tensor component)",
+                        v.quantity, o.kind
+                    ),
+                ))
+            }
+            Some(_) => steps.push(i),
+        }
+    }
+    steps
 }
 
 /// Preflights the needed steps in execution order, passing each one's announced outputs

@@ -18,6 +18,7 @@ pub mod subvoxel;
 pub mod suggest;
 pub mod testing;
 pub mod units;
+pub mod values;
 
 // Lets `#[params]`-generated code name this crate from inside it too.
 extern crate self as grainpipe_core;

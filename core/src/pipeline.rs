@@ -254,6 +254,10 @@ pub struct PipelineDoc {
     pub file_seed: u64,
     /// The `--set` assignments applied, in order.
     pub overrides: Vec<Override>,
+    /// Values the results are compared with (`reference:`), and where each quantity is
+    /// written (for planning errors).
+    pub reference: Option<crate::values::Reference>,
+    pub reference_locs: Vec<Loc>,
 }
 
 #[derive(Deserialize)]
@@ -269,6 +273,28 @@ struct RawDoc {
     export: Vec<Spanned<RawExport>>,
     #[serde(default)]
     plugins: Vec<Spanned<String>>,
+    #[serde(default)]
+    reference: Option<Spanned<RawReference>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawReference {
+    source: Spanned<String>,
+    #[serde(default)]
+    note: String,
+    values: Vec<Spanned<RawReferenceValue>>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawReferenceValue {
+    quantity: Spanned<String>,
+    value: Spanned<serde_json::Value>,
+    #[serde(default)]
+    tolerance: Option<Spanned<serde_json::Value>>,
+    #[serde(default)]
+    range: Option<Spanned<Vec<Spanned<serde_json::Value>>>>,
 }
 
 #[derive(Deserialize)]
@@ -295,7 +321,17 @@ struct RawExport {
 }
 
 /// The keys a pipeline may use at each level, for suggestions on unknown keys.
-const DOC_KEYS: &[&str] = &["name", "description", "seed", "stages", "export", "plugins"];
+const DOC_KEYS: &[&str] = &[
+    "name",
+    "description",
+    "seed",
+    "stages",
+    "export",
+    "plugins",
+    "reference",
+];
+const REFERENCE_KEYS: &[&str] = &["source", "note", "values"];
+const REFERENCE_VALUE_KEYS: &[&str] = &["quantity", "value", "tolerance", "range"];
 const STEP_KEYS: &[&str] = &["id", "use", "in", "with"];
 const EXPORT_KEYS: &[&str] = &["from", "to", "format", "with"];
 
@@ -377,7 +413,16 @@ impl PipelineDoc {
                 }
             })
             .collect();
+        let (reference, reference_locs) = match raw.reference {
+            Some(r) => {
+                let (r, locs) = parse_reference(path, r.value)?;
+                (Some(r), locs)
+            }
+            None => (None, Vec::new()),
+        };
         Ok(PipelineDoc {
+            reference,
+            reference_locs,
             file: path.to_path_buf(),
             source,
             name: raw.name,
@@ -578,6 +623,39 @@ impl PipelineDoc {
                 .collect();
             doc.insert("plugins".into(), Value::Array(p));
         }
+        if let Some(r) = &self.reference {
+            let values: Vec<Value> = r
+                .values
+                .iter()
+                .map(|v| {
+                    let mut m = Map::new();
+                    m.insert("quantity".into(), json!(v.quantity));
+                    m.insert("value".into(), json!(v.written));
+                    match v.tolerance {
+                        Some(crate::values::Tolerance::Range(..)) => {
+                            let (lo, hi) = v
+                                .tolerance_written
+                                .trim_start_matches("range ")
+                                .split_once(" to ")
+                                .unwrap_or_default();
+                            m.insert("range".into(), json!([lo, hi]));
+                        }
+                        Some(_) => {
+                            m.insert("tolerance".into(), json!(v.tolerance_written));
+                        }
+                        None => {}
+                    }
+                    Value::Object(m)
+                })
+                .collect();
+            let mut m = Map::new();
+            m.insert("source".into(), json!(r.source));
+            if !r.note.is_empty() {
+                m.insert("note".into(), json!(r.note));
+            }
+            m.insert("values".into(), Value::Array(values));
+            doc.insert("reference".into(), Value::Object(m));
+        }
         serde_saphyr::to_string(&Value::Object(doc)).unwrap_or_else(|e| format!("# {e}\n"))
     }
 }
@@ -659,13 +737,159 @@ fn yaml_error(path: &Path, source: &str, e: &serde_saphyr::Error) -> PipelineErr
         _ => first.to_string(),
     };
     let help = crate::stage::unknown_field_name(&message).and_then(|k| {
-        [DOC_KEYS, STEP_KEYS, EXPORT_KEYS]
-            .iter()
-            .filter_map(|keys| crate::registry::closest(&k, keys.iter().copied()))
-            .next()
-            .map(|s| format!("did you mean `{s}`?"))
+        [
+            DOC_KEYS,
+            STEP_KEYS,
+            EXPORT_KEYS,
+            REFERENCE_KEYS,
+            REFERENCE_VALUE_KEYS,
+        ]
+        .iter()
+        .filter_map(|keys| crate::registry::closest(&k, keys.iter().copied()))
+        .next()
+        .map(|s| format!("did you mean `{s}`?"))
     });
     PipelineError::input(path, loc, message).with_help(help)
+}
+
+/// Reads a `reference:` block: each value a number or a unit string (`4.97 GPa`), each
+/// tolerance `10 %` or a bare fraction (relative) or a quantity of the value's dimension
+/// (absolute). Errors name the line of the value.
+fn parse_reference(
+    path: &Path,
+    r: RawReference,
+) -> Result<(crate::values::Reference, Vec<Loc>), PipelineError> {
+    use crate::units::{parse_quantity, Quantity};
+    use crate::values::{ReferenceValue, Tolerance};
+    let at = |loc: Loc, m: String| PipelineError::input(path, Some(loc), m);
+    let quantity_of = |v: &Spanned<serde_json::Value>,
+                       key: &str|
+     -> Result<(Quantity, String), PipelineError> {
+        let written = match &v.value {
+            serde_json::Value::Number(n) => n.to_string(),
+            serde_json::Value::String(t) => t.clone(),
+            other => {
+                return Err(at(
+                    Loc::of(v),
+                    format!("reference `{key}` must be a number or a quantity such as `4.9 GPa`, not `{other}`"),
+                ))
+            }
+        };
+        let q = parse_quantity(&written)
+            .map_err(|e| at(Loc::of(v), format!("reference `{key}`: {e}")))?;
+        if !q.value.is_finite() {
+            return Err(at(
+                Loc::of(v),
+                format!("reference `{key}` `{written}` is not finite"),
+            ));
+        }
+        Ok((q, written))
+    };
+    if r.source.value.trim().is_empty() {
+        return Err(at(
+            Loc::of(&r.source),
+            "reference `source` is empty: say where the values come from (paper, table, \
+             independent computation)"
+                .into(),
+        ));
+    }
+    let mut values = Vec::with_capacity(r.values.len());
+    let mut locs = Vec::with_capacity(r.values.len());
+    for v in r.values {
+        let v = v.value;
+        let quantity = v.quantity.value.trim().to_string();
+        if crate::values::split_quantity(&quantity).is_none() {
+            return Err(at(
+                Loc::of(&v.quantity),
+                format!("reference quantity `{quantity}` is not of the form step.port.column, step.port[k] or step.port.<component>"),
+            )
+            .with_help(Some("e.g. `stiffness.constants.E_x` or `flow.permeability.kappa_zz`".into())));
+        }
+        let (q, written) = quantity_of(&v.value, "value")?;
+        if q.value == 0.0 {
+            return Err(at(
+                Loc::of(&v.value),
+                format!("reference value of `{quantity}` is zero: a relative difference to it has no meaning"),
+            ));
+        }
+        let (tolerance, tolerance_written) = match (&v.tolerance, &v.range) {
+            (Some(_), Some(r)) => {
+                return Err(at(
+                    Loc::of(r),
+                    format!("reference `{quantity}` has both `tolerance` and `range`: give one"),
+                ))
+            }
+            (None, None) => (None, String::new()),
+            (None, Some(r)) => {
+                let [lo, hi] = r.value.as_slice() else {
+                    return Err(at(
+                        Loc::of(r),
+                        format!("reference `range` of `{quantity}` must be [lowest, highest]"),
+                    ));
+                };
+                let (lq, lw) = quantity_of(lo, "range")?;
+                let (hq, hw) = quantity_of(hi, "range")?;
+                if lq.dim != q.dim || hq.dim != q.dim {
+                    return Err(at(
+                        Loc::of(r),
+                        format!(
+                            "reference `range` [{lw}, {hw}] is not in the dimension of `{written}`"
+                        ),
+                    ));
+                }
+                if lq.value > hq.value {
+                    return Err(at(
+                        Loc::of(r),
+                        format!("reference `range` [{lw}, {hw}]: the lowest is above the highest"),
+                    ));
+                }
+                (
+                    Some(Tolerance::Range(lq.value, hq.value)),
+                    format!("range {lw} to {hw}"),
+                )
+            }
+            (Some(t), None) => {
+                let (tq, tw) = quantity_of(t, "tolerance")?;
+                let tol = if tq.dim == crate::units::Dimension::NONE {
+                    Tolerance::Relative(tq.value)
+                } else if tq.dim == q.dim {
+                    Tolerance::Absolute(tq.value)
+                } else {
+                    return Err(at(
+                        Loc::of(t),
+                        format!(
+                            "reference tolerance `{tw}` has another dimension than the value `{written}`"
+                        ),
+                    )
+                    .with_help(Some("give it as a fraction (`10 %`, `0.1`) or in the value's unit".into())));
+                };
+                if tq.value < 0.0 {
+                    return Err(at(
+                        Loc::of(t),
+                        format!("reference tolerance `{tw}` is negative"),
+                    ));
+                }
+                (Some(tol), tw)
+            }
+        };
+        locs.push(Loc::of(&v.quantity));
+        values.push(ReferenceValue {
+            quantity,
+            value: q.value,
+            dimension: q.dim.0,
+            written,
+            tolerance,
+            tolerance_written,
+        });
+    }
+    Ok((
+        crate::values::Reference {
+            source: r.source.value,
+            note: r.note,
+            values,
+        },
+        locs,
+    ))
 }
 
 #[cfg(test)]
@@ -691,6 +915,50 @@ mod tests {
             }
         );
         assert_eq!(d.exports[0].to, PathBuf::from("out/x.vti"));
+    }
+
+    /// Issue 36: reference values in units, tolerances relative (`%`, a bare fraction) or in
+    /// the value's unit; a tolerance in another dimension, a zero value and an empty source
+    /// are errors at their line.
+    #[test]
+    fn reference_block_reads_units_and_tolerances() {
+        use crate::values::Tolerance;
+        let with =
+            |values: &str| format!("{GOOD}reference:\n  source: Table 7\n  values:\n{values}");
+        let d = PipelineDoc::parse(
+            Path::new("t.yaml"),
+            with("    - {quantity: b.x.E_x, value: 4.9 GPa, tolerance: 10 %}\n    - {quantity: \"b.x[8]\", value: 1.2e-11, tolerance: 0.05}\n    - {quantity: b.x.E_z, value: 4 GPa, tolerance: 0.5 GPa}\n    - {quantity: b.x.E_y, value: 4.63 GPa, range: [3.85 GPa, 5.35 GPa]}\n"),
+        )
+        .unwrap();
+        let r = d.reference.unwrap();
+        assert_eq!(r.values[0].value, 4.9e9);
+        assert_eq!(r.values[0].tolerance, Some(Tolerance::Relative(0.1)));
+        assert_eq!(r.values[1].tolerance, Some(Tolerance::Relative(0.05)));
+        assert_eq!(r.values[2].tolerance, Some(Tolerance::Absolute(0.5e9)));
+        assert_eq!(
+            r.values[3].tolerance,
+            Some(Tolerance::Range(3.85e9, 5.35e9))
+        );
+        assert_eq!(d.reference_locs[1].line, 17);
+        for (values, says, line) in [
+            (
+                "    - {quantity: b.x.E_x, value: 4.9 GPa, tolerance: 2 um}\n",
+                "another dimension",
+                16,
+            ),
+            ("    - {quantity: b.x.E_x, value: 0 GPa}\n", "is zero", 16),
+            ("    - {quantity: bx, value: 1}\n", "not of the form", 16),
+            (
+                "    - {quantity: b.x.E_x, value: 4.9 GPa, tolerence: 1 %}\n",
+                "tolerance",
+                16,
+            ),
+        ] {
+            let e = PipelineDoc::parse(Path::new("t.yaml"), with(values)).unwrap_err();
+            let all = format!("{e} {:?}", e.help);
+            assert!(all.contains(says), "{values}: {all}");
+            assert_eq!(e.loc.map(|l| l.line), Some(line), "{values}: {all}");
+        }
     }
 
     #[test]

@@ -518,3 +518,72 @@ fn keys_of_a_flattened_group_are_accepted_and_typos_still_refused() {
     assert!(e.message.contains("parameter `fail`: invalid type"), "{e}");
     assert_eq!(e.loc.unwrap().line, 7);
 }
+
+/// Issue 36: a `reference:` block is checked when planning (unknown steps and ports named at
+/// their line, with a suggestion) and compared with the results after the run: the relative
+/// difference is (result - reference) / |reference| of the value the run computed, a value in
+/// another dimension or one the step does not give is reported missing, not compared.
+#[test]
+fn reference_values_are_checked_before_and_compared_after_the_run() {
+    let with_ref = |values: &str| {
+        format!(
+            "{}reference:\n  source: a test\n  values:\n{values}",
+            CHAIN.replace("use: test.source\n", "use: test.source\n    with: {n: 1}\n")
+        )
+    };
+    let bad = doc(&with_ref(
+        "    - {quantity: twise.table.x, value: 1}\n    - {quantity: src.tabel.x, value: 1}\n",
+    ));
+    let e = plan(&bad, &registry(), &PlanOptions::default())
+        .err()
+        .unwrap();
+    let all: Vec<String> = std::iter::once(&e)
+        .chain(e.related.iter())
+        .map(|x| {
+            format!(
+                "{} @{} {:?}",
+                x.message,
+                x.loc.map_or(0, |l| l.line),
+                x.help
+            )
+        })
+        .collect();
+    let all = all.join("\n");
+    assert!(
+        all.contains("no step `twise`") && all.contains("`twice`"),
+        "{all}"
+    );
+    assert!(
+        all.contains("has no output `tabel`") && all.contains("`table`"),
+        "{all}"
+    );
+    assert!(all.contains("@17") && all.contains("@18"), "{all}");
+
+    let d = doc(&with_ref(
+        "    - {quantity: twice.table.x, value: 1, tolerance: 100 %}\n    - {quantity: src.table.x, value: 5 m}\n    - {quantity: twice.table.y, value: 1}\n",
+    ));
+    let p = plan(&d, &registry(), &PlanOptions::default()).unwrap();
+    let r = execute(&d, &p, &RunOptions { cache_dir: None }, &mut SilentObserver).unwrap();
+    let rows = grainpipe_core::values::compare(d.reference.as_ref().unwrap(), &r.outputs);
+    let x = 2.0 * column(&r, "src")[0];
+    use grainpipe_core::values::Verdict;
+    assert_eq!(rows[0].result, Some(x));
+    assert!((rows[0].relative_difference.unwrap() - (x - 1.0)).abs() < 1e-15);
+    // x = 2 u with u uniform on [0, 1): always within 100 % of 1.
+    assert_eq!(rows[0].verdict, Verdict::Within);
+    assert_eq!(rows[1].verdict, Verdict::Missing);
+    assert!(
+        rows[1].why.contains("the result is in 1"),
+        "{}",
+        rows[1].why
+    );
+    assert_eq!(rows[2].verdict, Verdict::Missing);
+    assert!(
+        rows[2].why.contains("it has: twice.table.x"),
+        "{}",
+        rows[2].why
+    );
+    // The effective YAML keeps the block (sweeps and the run record re-read it).
+    let again = doc(&d.effective_yaml());
+    assert_eq!(again.reference, d.reference);
+}

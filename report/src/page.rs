@@ -711,6 +711,114 @@ pub fn item_html(it: &Item, pics: &Pics) -> String {
     }
 }
 
+/// The pipeline's `reference:` values beside this run's: each result in the unit its
+/// reference was written in, the relative difference, and whether it lies within the stated
+/// tolerance (a comparison without tolerance is shown, not judged).
+pub fn reference_html(r: &crate::record::ReferenceRecord) -> String {
+    use grainpipe_core::values::Verdict;
+    let rows: Vec<Vec<String>> = r
+        .rows
+        .iter()
+        .map(|c| {
+            // The written unit: the factor from SI to it is the reference's SI value over the
+            // number it was written with.
+            let (number, unit) = split_written(&c.reference_written);
+            let factor = number
+                .filter(|n| *n != 0.0)
+                .map_or(1.0, |n| c.reference / n);
+            let result = match c.result {
+                Some(x) => format!("{} {}", num(x / factor), esc(unit)),
+                None => format!("<span class=\"warn\">not computed</span> {}", esc(&c.why)),
+            };
+            let verdict = match c.verdict {
+                Verdict::Within => "<span class=\"ok\">within</span>",
+                Verdict::Outside => "<span class=\"bad\">outside</span>",
+                Verdict::Compared => "no tolerance given",
+                Verdict::Missing => "<span class=\"warn\">missing</span>",
+            };
+            vec![
+                format!(
+                    "<code>{}</code>{}",
+                    esc(&c.quantity),
+                    c.component
+                        .as_ref()
+                        .map(|k| format!(" ({})", esc(k)))
+                        .unwrap_or_default()
+                ),
+                result,
+                esc(&c.reference_written),
+                c.relative_difference
+                    .map(signed_pct)
+                    .unwrap_or_else(|| "–".into()),
+                if c.tolerance.is_empty() {
+                    "–".into()
+                } else {
+                    format!("± {}", esc(&c.tolerance))
+                },
+                verdict.into(),
+            ]
+        })
+        .collect();
+    let within = r
+        .rows
+        .iter()
+        .filter(|c| c.verdict == Verdict::Within)
+        .count();
+    let judged = r
+        .rows
+        .iter()
+        .filter(|c| matches!(c.verdict, Verdict::Within | Verdict::Outside))
+        .count();
+    let mut out = format!(
+        "<p>Reference: {}.{}</p>",
+        esc(&r.source),
+        if r.note.is_empty() {
+            String::new()
+        } else {
+            format!(" {}", esc(&r.note))
+        }
+    );
+    if judged > 0 {
+        let _ = write!(
+            out,
+            "<p id=\"reference-verdict\" class=\"{}\">{within} of {judged} within their tolerance</p>",
+            if within == judged { "ok" } else { "bad" }
+        );
+    }
+    out.push_str(&table(
+        "reference",
+        &[
+            "quantity".into(),
+            "this run".into(),
+            "reference".into(),
+            "difference".into(),
+            "tolerance".into(),
+            "".into(),
+        ],
+        &rows,
+        "",
+    ));
+    out
+}
+
+/// `4.97 GPa` -> (4.97, "GPa"); a bare number has no unit.
+fn split_written(w: &str) -> (Option<f64>, &str) {
+    let w = w.trim();
+    match w.split_once(char::is_whitespace) {
+        Some((n, u)) => (n.parse().ok(), u.trim()),
+        None => (w.parse().ok(), ""),
+    }
+}
+
+/// A relative difference with its sign (`+3.2 %`, `−12.0 %`).
+fn signed_pct(v: f64) -> String {
+    if v < 0.0 {
+        format!("−{}", pct(-v))
+    } else {
+        format!("+{}", pct(v))
+    }
+}
+
 /// "2026-11-24 23:05:12 UTC" from Unix seconds (civil-from-days, proleptic Gregorian).
 pub fn utc(secs: f64) -> String {
     let s = secs.max(0.0) as i64;
@@ -800,6 +908,11 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
     );
     for (id, t, n) in [
         ("summary", "Summary", 1),
+        (
+            "reference",
+            "Reference",
+            usize::from(rec.reference.is_some()),
+        ),
         ("microstructure", "Microstructure", images.len()),
         ("packing", "Packing", packings.len()),
         ("fields", "Fields", fields.len()),
@@ -915,6 +1028,13 @@ pub fn run_page(rec: &RunRecord, data: &crate::data::ReportData, pics: &Pics) ->
         ));
     }
     body.push_str(&section("summary", "Summary", &summary));
+    if let Some(r) = &rec.reference {
+        body.push_str(&section(
+            "reference",
+            "Comparison with the pipeline's reference",
+            &reference_html(r),
+        ));
+    }
 
     let join = |v: &[&Item], f: &dyn Fn(&Item) -> String| -> String {
         v.iter().map(|i| f(i)).collect::<Vec<_>>().join("\n")

@@ -83,6 +83,34 @@ pub struct RunRecord {
     /// recorded).
     #[serde(default)]
     pub warnings: Vec<WarningRecord>,
+    /// The pipeline's `reference:` values against this run's results (absent when the
+    /// pipeline declares none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reference: Option<ReferenceRecord>,
+}
+
+/// A pipeline's `reference:` block as compared with the run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ReferenceRecord {
+    pub source: String,
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub note: String,
+    pub rows: Vec<grainpipe_core::values::Comparison>,
+}
+
+impl ReferenceRecord {
+    /// The comparison of `doc`'s reference block with a run's results (every row missing
+    /// for a failed run).
+    pub fn of(doc: &PipelineDoc, result: Result<&RunResult, &String>) -> Option<Self> {
+        let r = doc.reference.as_ref()?;
+        let empty = indexmap::IndexMap::new();
+        let outputs = result.map(|r| &r.outputs).unwrap_or(&empty);
+        Some(ReferenceRecord {
+            source: r.source.clone(),
+            note: r.note.clone(),
+            rows: grainpipe_core::values::compare(r, outputs),
+        })
+    }
 }
 
 /// One warning of a run: the step that gave it and its text.
@@ -280,6 +308,7 @@ pub fn record(end: &RunEnd) -> RunRecord {
                 text: text.clone(),
             })
             .collect(),
+        reference: ReferenceRecord::of(doc, end.result.as_ref().copied()),
     }
 }
 

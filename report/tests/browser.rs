@@ -5,6 +5,7 @@
 //! chromium is installed (`apt-get install chromium`).
 
 use grainpipe_core::model::*;
+use grainpipe_core::values::{Comparison, Verdict};
 use grainpipe_report::data::{self, ReportData};
 use grainpipe_report::numbers;
 use grainpipe_report::record::{self, RunRecord, StepProvenance, StepRecord};
@@ -367,6 +368,36 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
             step: "pack".into(),
             text: "radii: KS test against the target law failed (p = 0.003 < 0.01)".into(),
         }],
+        reference: Some(grainpipe_report::record::ReferenceRecord {
+            source: "a test table".into(),
+            note: String::new(),
+            rows: vec![
+                Comparison {
+                    quantity: "stiffness.constants.E_x".into(),
+                    component: None,
+                    reference: 5.0e9,
+                    reference_written: "5 GPa".into(),
+                    result: Some(4.6e9),
+                    unit: "Pa".into(),
+                    relative_difference: Some(-0.08),
+                    tolerance: "10 %".into(),
+                    verdict: Verdict::Within,
+                    why: String::new(),
+                },
+                Comparison {
+                    quantity: "flow.permeability.kappa_zz".into(),
+                    component: Some("kappa_zz".into()),
+                    reference: 1.0e-11,
+                    reference_written: "1e-11 m^2".into(),
+                    result: Some(3.5e-11),
+                    unit: "m^2".into(),
+                    relative_difference: Some(2.5),
+                    tolerance: "20 %".into(),
+                    verdict: Verdict::Outside,
+                    why: String::new(),
+                },
+            ],
+        }),
     };
     (rec, ReportData { items }, pics)
 }
@@ -418,6 +449,12 @@ fn run_report_in_a_browser() {
         !html.contains("the paper reports"),
         "a paper's numbers on a run's page"
     );
+    // Issue 36: reference values only where the pipeline declares them, in their written
+    // unit, judged against their tolerance.
+    assert!(html.contains("<a href=\"#reference\">Reference</a>"));
+    assert!(html.contains("1 of 2 within their tolerance"));
+    assert!(html.contains("<td>4.6 GPa</td><td>5 GPa</td><td>−8.00 %</td><td>± 10 %</td>"));
+    assert!(html.contains("<span class=\"bad\">outside</span>"));
     // Issue 36: warnings are shown at the top and per step, and the status says so.
     assert!(html.contains("id=\"status\">completed with 1 warning</span>"));
     assert!(html.contains("<span class=\"step\">pack</span>: radii: KS test"));

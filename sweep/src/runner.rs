@@ -5,44 +5,13 @@
 
 use crate::spec::{error_text, parse_collect, plan_run, run_doc, Manifest, PluginLoad, RunSpec};
 use grainpipe_core::engine::{self, RunOptions, SilentObserver};
-use grainpipe_core::{Artifact, ColumnData, Registry};
+pub use grainpipe_core::values::{component_name, values_of, Value};
+use grainpipe_core::Registry;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::{Condvar, Mutex};
 use std::time::Instant;
-
-/// A collected value of a run.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Value {
-    pub name: String,
-    pub unit: String,
-    /// JSON has no NaN: a non-finite value is stored as null.
-    pub value: Option<f64>,
-    /// The name of a tensor component (`kappa_xx`, `C_11`) or of a table row (the row's
-    /// first text cell, e.g. `apparent`) when the value is one of several, for reports.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub component: Option<String>,
-}
-
-/// The name of component `k` of a tensor: `kappa_xy` for a 3 x 3 permeability (`k_xy` for a
-/// conductivity, `<name>_xy` else), `C_12` for a 6 x 6 Voigt or Mandel matrix, `<name>_k`
-/// otherwise.
-pub fn component_name(t: &grainpipe_core::Tensor, k: usize) -> String {
-    const XYZ: [&str; 3] = ["x", "y", "z"];
-    let sym = match t.name.as_str() {
-        "permeability" => "kappa",
-        "conductivity" => "k",
-        "stiffness" => "C",
-        n => n,
-    };
-    match t.shape.as_slice() {
-        [3, 3] => format!("{sym}_{}{}", XYZ[k / 3], XYZ[k % 3]),
-        [6, 6] => format!("{sym}_{}{}", k / 6 + 1, k % 6 + 1),
-        [3] => format!("{sym}_{}", XYZ[k % 3]),
-        _ => format!("{sym}_{k}"),
-    }
-}
 
 /// What a finished run left: `DIR/runs/<id>/result.json`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -170,102 +139,18 @@ pub fn peak_rss() -> u64 {
         .map_or(0, |kib| kib * 1024)
 }
 
-/// The values a `--collect` names in a run's outputs: every row of the column (or of every
-/// numeric column when none is named) of a table, or every component of a tensor. Names are
-/// `step.port.column`, with `[k]` appended when there are several rows.
+/// The values a `--collect` names in a run's outputs (see [`values_of`]).
 pub fn collect_values(
     res: &engine::RunResult,
     spec: &crate::spec::CollectSpec,
 ) -> Result<Vec<Value>, String> {
-    let full = format!("{}.{}", spec.step, spec.port);
-    let a = res
-        .outputs
-        .get(&spec.step)
-        .and_then(|o| o.get(&spec.port))
-        .ok_or_else(|| format!("--collect `{full}`: the step gave no such output"))?;
-    let v = |name: String, unit: &str, x: f64| Value {
-        name,
-        unit: unit.to_string(),
-        value: x.is_finite().then_some(x),
-        component: None,
-    };
-    match a {
-        Artifact::Table(t) => {
-            let cols: Vec<&grainpipe_core::Column> = match &spec.column {
-                Some(c) => vec![t.column(c).ok_or_else(|| {
-                    let names: Vec<&str> = t.columns.iter().map(|c| c.name.as_str()).collect();
-                    format!(
-                        "--collect `{full}.{c}`: no column `{c}`{}; it has: {}",
-                        grainpipe_core::registry::closest(c, names.iter().copied())
-                            .map(|s| format!(" (did you mean `{s}`?)"))
-                            .unwrap_or_default(),
-                        names.join(", ")
-                    )
-                })?],
-                None => t
-                    .columns
-                    .iter()
-                    .filter(|c| !matches!(c.data, ColumnData::Str(_)))
-                    .collect(),
-            };
-            let mut out = Vec::new();
-            for c in cols {
-                let xs: Vec<f64> = match &c.data {
-                    ColumnData::F64(x) => x.clone(),
-                    ColumnData::I64(x) => x.iter().map(|&i| i as f64).collect(),
-                    ColumnData::Str(_) => {
-                        return Err(format!(
-                            "--collect `{full}.{}`: the column holds text",
-                            c.name
-                        ))
-                    }
-                };
-                let name = format!("{full}.{}", c.name);
-                // Rows are named by the table's first text column (an approximation, a
-                // direction), when it has one.
-                let rows: Option<&Vec<String>> = t.columns.iter().find_map(|c| match &c.data {
-                    ColumnData::Str(s) => Some(s),
-                    _ => None,
-                });
-                if xs.len() == 1 {
-                    out.push(v(name, &c.unit, xs[0]));
-                } else {
-                    for (k, x) in xs.iter().enumerate() {
-                        let mut val = v(format!("{name}[{k}]"), &c.unit, *x);
-                        val.component = rows
-                            .and_then(|r| r.get(k))
-                            .map(|r| format!("{} ({r})", c.name));
-                        out.push(val);
-                    }
-                }
-            }
-            Ok(out)
-        }
-        Artifact::Tensor(t) => {
-            let idx: Option<usize> = match &spec.column {
-                Some(c) => Some(c.parse().map_err(|_| {
-                    format!(
-                        "--collect `{full}.{c}`: a tensor's values are chosen by index (0..{})",
-                        t.values.len()
-                    )
-                })?),
-                None => None,
-            };
-            Ok(t.values
-                .iter()
-                .enumerate()
-                .filter(|(k, _)| idx.is_none_or(|i| i == *k))
-                .map(|(k, x)| Value {
-                    component: Some(component_name(t, k)),
-                    ..v(format!("{full}[{k}]"), &t.unit, *x)
-                })
-                .collect())
-        }
-        other => Err(format!(
-            "--collect `{full}`: a {} has no values to collect (collect a table or a tensor)",
-            other.kind()
-        )),
-    }
+    values_of(
+        &res.outputs,
+        &spec.step,
+        &spec.port,
+        spec.column.as_deref(),
+        "--collect",
+    )
 }
 
 /// Runs one run of a sweep in this process and writes its `result.json` (also when it fails).
@@ -534,46 +419,5 @@ pub fn human_duration(s: f64) -> String {
         0..60 => format!("{s}s"),
         60..3600 => format!("{}m{:02}s", s / 60, s % 60),
         _ => format!("{}h{:02}m", s / 3600, (s % 3600) / 60),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use grainpipe_core::{Tensor, TensorConvention};
-
-    fn tensor(name: &str, shape: Vec<usize>) -> Tensor {
-        let n = shape.iter().product();
-        Tensor {
-            name: name.into(),
-            unit: String::new(),
-            shape,
-            values: vec![0.0; n],
-            convention: TensorConvention::Plain,
-        }
-    }
-
-    /// Issue 36: sweep reports name tensor components (`kappa_xx`, not `[0]`).
-    #[test]
-    fn tensor_components_are_named() {
-        let k = tensor("permeability", vec![3, 3]);
-        assert_eq!(component_name(&k, 0), "kappa_xx");
-        assert_eq!(component_name(&k, 5), "kappa_yz");
-        assert_eq!(component_name(&k, 8), "kappa_zz");
-        assert_eq!(
-            component_name(&tensor("conductivity", vec![3, 3]), 4),
-            "k_yy"
-        );
-        assert_eq!(component_name(&tensor("stiffness", vec![6, 6]), 7), "C_22");
-        assert_eq!(component_name(&tensor("fabric", vec![3]), 2), "fabric_z");
-        // Stored only when known: result.json of values without a name read back.
-        let v: Value = serde_json::from_str(r#"{"name":"a","unit":"","value":1.0}"#).unwrap();
-        assert_eq!(v.component, None);
-        let t = serde_json::to_string(&Value {
-            component: Some("kappa_xx".into()),
-            ..v
-        })
-        .unwrap();
-        assert!(t.contains("\"component\":\"kappa_xx\""));
     }
 }
