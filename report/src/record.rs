@@ -83,6 +83,9 @@ pub struct RunRecord {
     /// recorded).
     #[serde(default)]
     pub warnings: Vec<WarningRecord>,
+    /// `voxel_size: auto`: the levels run, the estimates, the order and the choice.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto_voxel: Option<serde_json::Value>,
 }
 
 /// One warning of a run: the step that gave it and its text.
@@ -106,6 +109,8 @@ pub struct RunEnd<'a> {
     pub written: Vec<PathBuf>,
     /// The warnings the steps gave, as (step, text).
     pub warnings: Vec<(String, String)>,
+    /// The `voxel_size: auto` decision, when the run had one.
+    pub auto_voxel: Option<serde_json::Value>,
 }
 
 /// The run directory of a pipeline run without `--out`: the deepest directory containing
@@ -280,6 +285,7 @@ pub fn record(end: &RunEnd) -> RunRecord {
                 text: text.clone(),
             })
             .collect(),
+        auto_voxel: end.auto_voxel.clone(),
     }
 }
 

@@ -367,6 +367,7 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
             step: "pack".into(),
             text: "radii: KS test against the target law failed (p = 0.003 < 0.01)".into(),
         }],
+        auto_voxel: None,
     };
     (rec, ReportData { items }, pics)
 }
