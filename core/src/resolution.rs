@@ -99,8 +99,9 @@ pub struct AutoVoxel {
     /// auto_order).
     #[param(default = vec![6.0, 12.0, 24.0])]
     pub auto_levels: Vec<f64>,
-    /// With voxel_size: auto and only two auto_levels, the order of convergence assumed
-    /// for the Richardson extrapolation (1 for staircased interfaces).
+    /// With voxel_size: auto, the formal order of convergence (1 for voxelized interfaces):
+    /// assumed with two auto_levels; with three or more an observed order above it is
+    /// capped to it (pre-asymptotic coarse levels would underestimate the error).
     #[param(default = 1.0)]
     pub auto_order: f64,
 }

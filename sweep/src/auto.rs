@@ -4,13 +4,14 @@
 //! `pipe study` does: a one-realization sweep of child processes up to the steps of the
 //! `auto_quantities` (no exports), here with the pipeline's own seed so the levels see the
 //! microstructure of the run they decide for. Each quantity is extrapolated (Richardson:
-//! observed order from the three finest levels, [`richardson`]; with two levels an assumed
-//! order, [`richardson_assumed`]), which gives the error model e(n) = e_f (n_f / n)^p of a run
-//! at n voxels per diameter from the finest level's estimated error e_f. The chosen
-//! resolution is the coarsest n with e(n) <= target_error for every quantity (a level
-//! already run counts only when it and every finer level meet the target by their own
-//! estimate). A choice whose run does not fit in memory, or levels that do not converge
-//! monotonically, fail loudly: there is no silent fallback.
+//! the order observed from the three finest levels, [`richardson`], capped at the formal
+//! order `auto_order`; with two levels that order assumed, [`richardson_assumed`]); the
+//! estimated error of a level is Roache's safety factor (1.25 observed, 3 assumed) times its
+//! distance to the extrapolation, which gives the error model e(n) = e_f (n_f / n)^p of a
+//! run at n voxels per diameter from the finest level's estimate e_f. The chosen resolution
+//! is the coarsest n with e(n) <= target_error for every quantity, never at or below a level
+//! that misses the target by its own estimate. A choice whose run does not fit in memory,
+//! or levels that do not converge monotonically, fail loudly: there is no silent fallback.
 //!
 //! The core only declares the parameters ([`grainpipe_core::resolution`]); a stage opts in
 //! by flattening [`AutoVoxel`] beside its `voxel_size` and `voxels_per_diameter`.
@@ -192,9 +193,15 @@ pub fn explain(
         finest_memory = plan_level(doc, a, n, registry, engine::available_memory())?.memory_bytes;
     }
     let order = if s.auto_levels.len() >= 3 {
-        "the order observed from the three finest levels".to_string()
+        format!(
+            "the order observed from the three finest levels, at most {}; safety factor 1.25",
+            s.auto_order
+        )
     } else {
-        format!("an assumed order {} (two levels)", s.auto_order)
+        format!(
+            "an assumed order {} (two levels); safety factor 3",
+            s.auto_order
+        )
     };
     Ok(format!(
         "{}.voxel_size: auto: first runs the levels {} voxels per diameter up to {} (finest \
@@ -218,13 +225,18 @@ pub struct QuantityEstimate {
     pub name: String,
     /// The value at each level.
     pub values: Vec<f64>,
-    /// Order of convergence used, and whether it was observed (three or more levels
-    /// converging monotonically) or assumed (two levels, `auto_order`).
+    /// Order of convergence used: the observed one (three or more levels converging
+    /// monotonically) capped at `auto_order`, or `auto_order` assumed (two levels).
     pub order: f64,
+    /// The observed order (`None` with two levels).
+    pub observed_order: Option<f64>,
     pub order_basis: &'static str,
+    /// Safety factor on the error estimates (1.25 observed, 3 assumed; Roache's GCI).
+    pub safety_factor: f64,
     /// Richardson extrapolation.
     pub extrapolated: f64,
-    /// Estimated relative error of each level against the extrapolation.
+    /// Estimated relative error of each level: safety factor x |value - extrapolated| /
+    /// |extrapolated|.
     pub errors: Vec<f64>,
     /// The voxel count per diameter this quantity needs for the target.
     pub needed: f64,
@@ -263,7 +275,7 @@ pub fn estimate(
     n: &[f64],
     z: &[f64],
     target: f64,
-    assumed_order: f64,
+    formal_order: f64,
 ) -> Result<QuantityEstimate, String> {
     let h: Vec<f64> = n.iter().map(|v| 1.0 / v).collect();
     let list = || {
@@ -279,8 +291,13 @@ pub fn estimate(
             fmt_level(n[k])
         ));
     }
-    let (order, basis, zs) = if n.len() >= 3 {
-        let (p, zs) = richardson(&h, z).ok_or_else(|| {
+    // The order used: the observed one, but never above the formal order `formal_order`
+    // (p = min(p_observed, p_formal), Celik et al., J. Fluids Eng. 130 (2008) 078001): an
+    // observed order above the formal one means pre-asymptotic coarse levels, which would
+    // extrapolate too close to the finest level and underestimate its error. With two levels
+    // the formal order is assumed.
+    let (observed, order, basis) = if n.len() >= 3 {
+        let (p, _) = richardson(&h, z).ok_or_else(|| {
             format!(
                 "`{name}` does not converge monotonically over the levels ({}), or its \
                  observed order is outside 0.25..8: no error estimate; give finer \
@@ -288,19 +305,33 @@ pub fn estimate(
                 list()
             )
         })?;
-        (p, "observed", zs)
+        if p > formal_order {
+            (
+                Some(p),
+                formal_order,
+                "observed above the formal order, capped",
+            )
+        } else {
+            (Some(p), p, "observed")
+        }
     } else {
-        let zs = richardson_assumed(&h, z, assumed_order)
-            .ok_or_else(|| format!("`{name}`: two distinct levels are needed ({})", list()))?;
-        (assumed_order, "assumed", zs)
+        (None, formal_order, "assumed")
     };
+    let zs = richardson_assumed(&h, z, order)
+        .ok_or_else(|| format!("`{name}`: two distinct levels are needed ({})", list()))?;
     if zs == 0.0 || !zs.is_finite() {
         return Err(format!(
             "`{name}` extrapolates to {zs}: a relative error is undefined ({})",
             list()
         ));
     }
-    let errors: Vec<f64> = z.iter().map(|v| (v - zs).abs() / zs.abs()).collect();
+    // Roache's safety factor of the grid convergence index (Roache, J. Fluids Eng. 116 (1994)
+    // 405-413): 1.25 with an observed order (three levels or more), 3 with an assumed one.
+    let safety = if observed.is_some() { 1.25 } else { 3.0 };
+    let errors: Vec<f64> = z
+        .iter()
+        .map(|v| safety * (v - zs).abs() / zs.abs())
+        .collect();
     let k = n.len() - 1;
     let (nf, ef) = (n[k], errors[k]);
     // e(n) = e_f (n_f / n)^p  =>  n = n_f (e_f / target)^(1/p).
@@ -326,7 +357,9 @@ pub fn estimate(
         name: name.to_string(),
         values: z.to_vec(),
         order,
+        observed_order: observed,
         order_basis: basis,
+        safety_factor: safety,
         extrapolated: zs,
         errors,
         needed,
@@ -697,10 +730,14 @@ mod tests {
             .iter()
             .map(|n: &f64| zs * (1.0 + c * n.powf(-p)))
             .collect();
-        let e = estimate("q", &n, &z, 0.01, 1.0).unwrap();
+        // Formal order 2 >= the observed 1.5: the observed order is used, with the safety
+        // factor 1.25: the estimated error is 1.25 c n^-p, so n = (1.25 c / target)^(1/p).
+        let fs = 1.25;
+        let e = estimate("q", &n, &z, 0.01, 2.0).unwrap();
         assert!((e.order - p).abs() < 1e-6 && e.order_basis == "observed");
+        assert_eq!(e.safety_factor, fs);
         assert!((e.extrapolated - zs).abs() < 1e-9);
-        let exact = (c / 0.01f64).powf(1.0 / p);
+        let exact = (fs * c / 0.01f64).powf(1.0 / p);
         assert!(
             (e.needed - exact).abs() / exact < 1e-6,
             "{} vs {exact}",
@@ -708,20 +745,30 @@ mod tests {
         );
         // A target the middle level meets: the choice lies between the levels, never below
         // the coarsest level whose error (and every finer one's) meets it.
-        let t = 1.2 * c * 12f64.powf(-p);
-        let e = estimate("q", &n, &z, t, 1.0).unwrap();
-        let exact = (c / t).powf(1.0 / p);
+        let t = 1.2 * fs * c * 12f64.powf(-p);
+        let e = estimate("q", &n, &z, t, 2.0).unwrap();
+        let exact = (fs * c / t).powf(1.0 / p);
         assert!(exact > 6.0 && exact < 12.0);
         assert!((e.needed - exact).abs() / exact < 1e-6);
         // A target only the finest level meets: the model's 18 lies between 12 (which
         // misses it) and 24.
-        let t = c * 18f64.powf(-p);
-        let e = estimate("q", &n, &z, t, 1.0).unwrap();
+        let t = fs * c * 18f64.powf(-p);
+        let e = estimate("q", &n, &z, t, 2.0).unwrap();
         assert!((e.needed - 18.0).abs() < 1e-6, "{}", e.needed);
-        // Two levels with the true order assumed: the same answer.
+        // Formal order 1 below the observed 1.5: capped at 1, which extrapolates past the
+        // limit (z* = z3 - (z2 - z3)) and asks for a finer voxel than the true order would.
+        let e = estimate("q", &n, &z, 0.01, 1.0).unwrap();
+        assert_eq!(e.order, 1.0);
+        assert_eq!(e.observed_order.map(|o| (o - p).abs() < 1e-6), Some(true));
+        assert!(e.order_basis.contains("capped"));
+        assert!((e.extrapolated - (2.0 * z[2] - z[1])).abs() < 1e-12);
+        assert!(e.needed > (fs * c / 0.01f64).powf(1.0 / p));
+        // Two levels with the true order assumed: the same limit, safety factor 3.
         let e2 = estimate("q", &n[1..], &z[1..], 0.01, p).unwrap();
         assert_eq!(e2.order_basis, "assumed");
-        let exact = (c / 0.01f64).powf(1.0 / p);
+        assert_eq!(e2.safety_factor, 3.0);
+        assert!((e2.extrapolated - zs).abs() < 1e-9);
+        let exact = (3.0 * c / 0.01f64).powf(1.0 / p);
         assert!((e2.needed - exact).abs() / exact < 1e-6);
         // Oscillating values: refused loudly, naming the values.
         let err = estimate("q", &n, &[1.0, 1.2, 1.1], 0.01, 1.0).unwrap_err();
