@@ -134,7 +134,7 @@ fn the_auto_choice_meets_the_target_against_a_brute_force_scan() {
         .as_array()
         .unwrap()
         .iter()
-        .any(|o| o == &format!("voxels.voxels_per_diameter={chosen}").as_str()));
+        .any(|o| o == format!("voxels.voxels_per_diameter={chosen}").as_str()));
 
     let file = tmp.path().join("p.yaml");
     let fine: Vec<f64> = [32.0, 48.0, 64.0].iter().map(|&n| k_xx(&file, n)).collect();

@@ -683,9 +683,13 @@ pub fn summary(c: &Choice) -> String {
                 c.level_wall_time_s[k]
             );
         }
+        let observed = q
+            .observed_order
+            .map(|o| format!(", observed {o:.2}"))
+            .unwrap_or_default();
         out += &format!(
-            "    extrapolated {:.6e}, order {:.2} ({}), needs {:.3} voxels/diameter\n",
-            q.extrapolated, q.order, q.order_basis, q.needed
+            "    extrapolated {:.6e}, order {:.2} ({}{observed}), safety factor {}, needs {:.3} voxels/diameter\n",
+            q.extrapolated, q.order, q.order_basis, q.safety_factor, q.needed
         );
     }
     let voxel = c

@@ -51,14 +51,14 @@ pub fn richardson(h: &[f64], z: &[f64]) -> Option<(f64, f64)> {
 }
 
 /// Richardson extrapolation from the two finest levels with an assumed order `p` (what two
-/// levels allow: the order cannot be observed from them): z* = z2 + (z2 - z1) / ((h1/h2)^p
-/// - 1), the same formula as [`richardson`]'s with p given. `None` with fewer than two
-/// levels or equal steps.
+/// levels allow: the order cannot be observed from them): z* = z2 + (z2 - z1) /
+/// ((h1/h2)^p - 1), the same formula as [`richardson`]'s with p given. `None` with fewer
+/// than two levels or equal steps.
 pub fn richardson_assumed(h: &[f64], z: &[f64], p: f64) -> Option<f64> {
     let mut lv: Vec<(f64, f64)> = h.iter().copied().zip(z.iter().copied()).collect();
     lv.retain(|q| q.0.is_finite() && q.0 > 0.0 && q.1.is_finite());
     lv.sort_by(|a, b| b.0.total_cmp(&a.0));
-    if lv.len() < 2 || !(p > 0.0) {
+    if lv.len() < 2 || p.is_nan() || p <= 0.0 {
         return None;
     }
     let [(h1, z1), (h2, z2)] = [lv[lv.len() - 2], lv[lv.len() - 1]];
