@@ -198,11 +198,30 @@ fn main() -> ExitCode {
             ExitCode::SUCCESS
         }
         Command::Man => grainpipe_cli::print_man(<Cli as clap::CommandFactory>::command()),
-        Command::Validate { pipeline } => {
+        Command::Validate { mut pipeline } => {
+            // voxel_size: auto: every level is planned and the plan shown is the finest
+            // level's; nothing runs.
+            let auto_text = match auto_step(&pipeline, &mut registry, &mut loader) {
+                Ok(Some((doc, a))) => {
+                    let finest = *a.settings.auto_levels.last().expect("checked levels");
+                    match grainpipe_sweep::auto::explain(&doc, &a, &registry) {
+                        Ok(text) => {
+                            pipeline.overrides.extend(a.overrides(finest));
+                            Some(text)
+                        }
+                        Err(e) => return report(&e),
+                    }
+                }
+                Ok(None) => None,
+                Err(e) => return report(&e),
+            };
             let (doc, plan) = match load_and_plan(&pipeline, &mut registry, &mut loader) {
                 Ok(x) => x,
                 Err(e) => return report(&e),
             };
+            if let Some(text) = &auto_text {
+                println!("{text}; the plan below is at the finest level");
+            }
             println!(
                 "{}: ok ({} of {} steps needed)",
                 doc.file.display(),
@@ -262,6 +281,59 @@ fn main() -> ExitCode {
                     return ExitCode::from(2);
                 }
             }
+            // voxel_size: auto: the levels run first (child processes), then this run at the
+            // chosen resolution, whose overrides join the run's (run.json reproduces it).
+            let mut pipeline = pipeline;
+            let auto_choice = match auto_step(&pipeline, &mut registry, &mut loader) {
+                Ok(Some((doc, a))) => {
+                    let parent = out
+                        .clone()
+                        .or_else(|| grainpipe_report::default_run_dir(&doc))
+                        .unwrap_or_else(|| PathBuf::from("out"));
+                    let req = grainpipe_sweep::auto::Request {
+                        file: &pipeline.file,
+                        overrides: &pipeline.overrides,
+                        seed: doc.seed,
+                        levels_dir: grainpipe_sweep::auto::levels_dir(
+                            &parent,
+                            &doc,
+                            &pipeline.overrides,
+                            &a.step,
+                        ),
+                        cache_dir: (!no_cache).then(|| cache_dir.clone()),
+                        threads,
+                        quiet,
+                        memory_limit: available_memory(),
+                    };
+                    let exe = match std::env::current_exe() {
+                        Ok(e) => e,
+                        Err(e) => {
+                            eprintln!("error: cannot locate the pipe binary: {e}");
+                            return ExitCode::from(2);
+                        }
+                    };
+                    let launch =
+                        grainpipe_sweep::self_launcher(exe, cli.plugin_dirs.clone(), threads);
+                    let resolved = grainpipe_sweep::auto::resolve(
+                        &doc,
+                        &a,
+                        &req,
+                        &mut registry,
+                        &mut |r, d| loader.load_for(r, d),
+                        &launch,
+                    );
+                    match resolved {
+                        Ok(c) => {
+                            pipeline.overrides.extend(c.overrides.iter().cloned());
+                            Some(c)
+                        }
+                        Err(grainpipe_sweep::auto::Failure::Pipeline(e)) => return report(&e),
+                        Err(grainpipe_sweep::auto::Failure::Printed(code)) => return code,
+                    }
+                }
+                Ok(None) => None,
+                Err(e) => return report(&e),
+            };
             let (doc, plan) = match load_and_plan(&pipeline, &mut registry, &mut loader) {
                 Ok(x) => x,
                 Err(e) => return report(&e),
@@ -329,6 +401,9 @@ fn main() -> ExitCode {
                     result: result.as_ref().map_err(|e| e.to_string()),
                     written: observer.written().to_vec(),
                     warnings: observer.warnings(),
+                    auto_voxel: auto_choice
+                        .as_ref()
+                        .and_then(|c| serde_json::to_value(c).ok()),
                 };
                 match grainpipe_report::write_run_dir(dir, &end) {
                     Ok(()) if !quiet => {
@@ -379,6 +454,24 @@ fn load_and_plan(
         out_dir: None,
     };
     grainpipe_cli::plan_pipeline(PipelineDoc::load(&args.file)?, registry, loader, &request)
+}
+
+/// The pipeline (plugins loaded, `--set` and `--seed` applied) and its `voxel_size: auto`
+/// step, when it has one (settings checked, errors at their key).
+fn auto_step(
+    args: &PipelineArgs,
+    registry: &mut grainpipe_core::Registry,
+    loader: &mut PluginLoader,
+) -> Result<Option<(PipelineDoc, grainpipe_sweep::auto::AutoStep)>, PipelineError> {
+    let mut doc = PipelineDoc::load(&args.file)?;
+    loader.load_for(registry, &doc)?;
+    for o in &args.overrides {
+        doc.apply_override(o)?;
+    }
+    if let Some(s) = args.seed {
+        doc.seed = s;
+    }
+    Ok(grainpipe_sweep::auto::find(&doc, registry)?.map(|a| (doc, a)))
 }
 
 #[derive(Debug, thiserror::Error, miette::Diagnostic)]

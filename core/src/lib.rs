@@ -12,6 +12,7 @@ pub mod pipeline;
 pub mod plugin_host;
 pub mod raster;
 pub mod registry;
+pub mod resolution;
 pub mod spatial;
 pub mod stage;
 pub mod subvoxel;

@@ -87,6 +87,9 @@ pub struct RunRecord {
     /// pipeline declares none).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reference: Option<ReferenceRecord>,
+    /// `voxel_size: auto`: the levels run, the estimates, the order and the choice.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto_voxel: Option<serde_json::Value>,
 }
 
 /// A pipeline's `reference:` block as compared with the run.
@@ -134,6 +137,8 @@ pub struct RunEnd<'a> {
     pub written: Vec<PathBuf>,
     /// The warnings the steps gave, as (step, text).
     pub warnings: Vec<(String, String)>,
+    /// The `voxel_size: auto` decision, when the run had one.
+    pub auto_voxel: Option<serde_json::Value>,
 }
 
 /// The run directory of a pipeline run without `--out`: the deepest directory containing
@@ -309,6 +314,7 @@ pub fn record(end: &RunEnd) -> RunRecord {
             })
             .collect(),
         reference: ReferenceRecord::of(doc, end.result.as_ref().copied()),
+        auto_voxel: end.auto_voxel.clone(),
     }
 }
 

@@ -398,6 +398,7 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
                 },
             ],
         }),
+        auto_voxel: None,
     };
     (rec, ReportData { items }, pics)
 }

@@ -8,6 +8,7 @@
 //! - `pipe study X.yaml --vary step.key=coarse,...,fine --metric step.port.column`: the
 //!   error of each level against the finest and by Richardson extrapolation, against its cost.
 
+pub mod auto;
 pub mod charts;
 pub mod runner;
 pub mod slurm;
@@ -102,6 +103,13 @@ pub struct SetupArgs {
     /// Only the final counts.
     #[arg(long, short)]
     pub quiet: bool,
+    /// Every run uses the base seed itself instead of a derived realization seed (the levels
+    /// of `voxel_size: auto` must see the microstructure of the run they decide for).
+    #[arg(skip)]
+    pub seed_as_is: bool,
+    /// The runs write no exports: only the collected values are wanted.
+    #[arg(skip)]
+    pub no_exports: bool,
 }
 
 /// The Kanit et al. RVE analysis of a sweep over cell sizes (eqs. 3.14-3.16).
@@ -368,8 +376,14 @@ pub fn prepare(
         cache_dir,
         threads: a.threads,
         rve: a.rve.spec(),
+        no_exports: a.no_exports,
         runs: spec::runs(&vary, a.realizations, base_seed),
     };
+    if a.seed_as_is {
+        for r in &mut m.runs {
+            r.seed = base_seed;
+        }
+    }
     let (point_memory, errors) = preflight_points(&m, &dir, registry, &collect, !a.quiet);
     if !errors.is_empty() {
         let points = point_memory.len();

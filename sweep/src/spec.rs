@@ -161,6 +161,9 @@ pub struct Manifest {
     /// RVE analysis of the table after collect (`--rve-volume`), if asked for.
     #[serde(default)]
     pub rve: Option<RveSpec>,
+    /// The runs write no exports (the levels of `voxel_size: auto` want only the values).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub no_exports: bool,
     pub runs: Vec<RunSpec>,
 }
 
@@ -344,6 +347,9 @@ pub fn run_doc(m: &Manifest, run: &RunSpec, dir: &Path) -> Result<PipelineDoc, P
         })?;
     }
     doc.seed = run.seed;
+    if m.no_exports {
+        doc.exports.clear();
+    }
     doc.redirect_exports(&dir.join("runs").join(&run.id));
     Ok(doc)
 }
@@ -458,6 +464,7 @@ mod tests {
             cache_dir: None,
             threads: None,
             rve: None,
+            no_exports: false,
         }
     }
 

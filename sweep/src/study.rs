@@ -50,6 +50,22 @@ pub fn richardson(h: &[f64], z: &[f64]) -> Option<(f64, f64)> {
     Some((p, z3 + (z3 - z2) / ((h2 / h3).powf(p) - 1.0)))
 }
 
+/// Richardson extrapolation from the two finest levels with an assumed order `p` (what two
+/// levels allow: the order cannot be observed from them): z* = z2 + (z2 - z1) /
+/// ((h1/h2)^p - 1), the same formula as [`richardson`]'s with p given. `None` with fewer
+/// than two levels or equal steps.
+pub fn richardson_assumed(h: &[f64], z: &[f64], p: f64) -> Option<f64> {
+    let mut lv: Vec<(f64, f64)> = h.iter().copied().zip(z.iter().copied()).collect();
+    lv.retain(|q| q.0.is_finite() && q.0 > 0.0 && q.1.is_finite());
+    lv.sort_by(|a, b| b.0.total_cmp(&a.0));
+    if lv.len() < 2 || p.is_nan() || p <= 0.0 {
+        return None;
+    }
+    let [(h1, z1), (h2, z2)] = [lv[lv.len() - 2], lv[lv.len() - 1]];
+    let r = (h1 / h2).powf(p);
+    (r > 1.0).then(|| z2 + (z2 - z1) / (r - 1.0))
+}
+
 /// Indices of the levels on the Pareto front of (cost, error): no other level is at least as
 /// cheap and at least as accurate, and strictly better in one.
 pub fn pareto(cost: &[f64], error: &[f64]) -> Vec<bool> {
@@ -431,6 +447,29 @@ mod tests {
         assert!((lim - 1.0).abs() < 1e-9, "{lim}");
         // Oscillating values: no extrapolation.
         assert!(richardson(&[4.0, 2.0, 1.0], &[1.0, 1.2, 1.1]).is_none());
+    }
+
+    /// Two levels cannot show their order; with the true order assumed the limit is exact
+    /// on a sequence z = z* + C h^p, and a wrong assumption errs by a known amount.
+    #[test]
+    fn richardson_with_two_levels_and_an_assumed_order() {
+        // z = 2 - 0.5 h^1.5 at h = 1/6 and 1/12 (voxels per diameter 6, 12).
+        let h = [1.0 / 6.0, 1.0 / 12.0];
+        let z: Vec<f64> = h.iter().map(|h: &f64| 2.0 - 0.5 * h.powf(1.5)).collect();
+        let lim = richardson_assumed(&h, &z, 1.5).unwrap();
+        assert!((lim - 2.0).abs() < 1e-12, "{lim}");
+        // Assuming order 1 instead: z2 - z1 = C h2^1.5 (2^1.5 - 1), so z2 + (z2 - z1) / (2 - 1)
+        // = 2 + C h2^1.5 (2^1.5 - 2): a too-low order overshoots the limit (by 9.97e-3 here).
+        let lim1 = richardson_assumed(&h, &z, 1.0).unwrap();
+        let expected = 2.0 + 0.5 * (1.0f64 / 12.0).powf(1.5) * (2f64.powf(1.5) - 2.0);
+        assert!((lim1 - expected).abs() < 1e-12, "{lim1} vs {expected}");
+        // Order does not matter for the input order of the levels.
+        assert_eq!(
+            richardson_assumed(&[h[1], h[0]], &[z[1], z[0]], 1.5),
+            Some(lim)
+        );
+        assert!(richardson_assumed(&[0.1], &[1.0], 1.0).is_none());
+        assert!(richardson_assumed(&[0.1, 0.1], &[1.0, 1.1], 1.0).is_none());
     }
 
     #[test]

@@ -565,6 +565,7 @@ fn invalid_points_are_all_reported_before_running() {
         cache_dir: None,
         threads: None,
         rve: None,
+        no_exports: false,
         runs: spec::runs(&vary, 3, 7),
     };
     let (mem, errors) = grainpipe_sweep::preflight_points(&m, tmp.path(), &reg, &[], false);

@@ -3,7 +3,7 @@
 
 use crate::components::count_components;
 use grainpipe_core::raster::SphereRaster;
-use grainpipe_core::units::{Length, Q};
+use grainpipe_core::resolution::{AutoVoxel, VoxelSize, UNRESOLVED};
 use grainpipe_core::{
     params, ArtifactKind, ArtifactMeta, Grid, InputMetas, Packing, Phase, PhaseImage, PortSpec,
     Preflight, RunContext, StageError, StageInfo, Table,
@@ -31,9 +31,12 @@ use std::sync::atomic::{AtomicU64, Ordering};
 #[params]
 pub struct BinderImage {
     /// Voxel edge (adjusted so voxels tile the box); 0 = use voxels_per_diameter. Give it to
-    /// have the grid known before running (downstream memory estimates need it).
-    #[param(default = Q::new(0.0))]
-    pub voxel_size: Q<Length>,
+    /// have the grid known before running (downstream memory estimates need it). `auto`:
+    /// the runner picks the coarsest voxel whose estimated error on auto_quantities meets
+    /// target_error (cheap levels at auto_levels voxels per diameter, Richardson
+    /// extrapolation; docs/sweeps.md).
+    #[param(default = VoxelSize::default())]
+    pub voxel_size: VoxelSize,
     /// Voxels across the mean volume-equivalent grain diameter when voxel_size is 0 (the
     /// paper's 4 um for a D50 of 140 um is 35).
     #[param(default = 35.0)]
@@ -56,6 +59,8 @@ pub struct BinderImage {
     /// Name of phase 2.
     #[param(default = "binder".into())]
     pub binder_phase: String,
+    #[param(flatten)]
+    pub auto: AutoVoxel,
 }
 
 /// More voxels than this are refused at preflight (a typo in voxel_size, not a study).
@@ -63,6 +68,9 @@ const MAX_VOXELS: f64 = 4e9;
 
 impl BinderImage {
     pub fn check(&self) -> Result<(), StageError> {
+        if self.voxel_size.is_auto() {
+            return Err(StageError::param("voxel_size", UNRESOLVED));
+        }
         let v = self.voxel_size.si();
         if !v.is_finite() || v < 0.0 {
             return Err(StageError::param(

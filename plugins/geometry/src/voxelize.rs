@@ -1,7 +1,7 @@
 //! `voxelize.packing`: spheres and clumps -> a phase image, with sub-voxel supersampling.
 
+use grainpipe_core::resolution::{AutoVoxel, VoxelSize, UNRESOLVED};
 use grainpipe_core::subvoxel::{self, SubvoxelOutput};
-use grainpipe_core::units::{Length, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, Grid, InputMetas, Inputs, Outputs, Phase,
     PhaseImage, PortSpec, Preflight, RunContext, StageError, StageInfo, Table, TypedStage,
@@ -12,9 +12,12 @@ use rayon::prelude::*;
 #[params]
 pub struct VoxelizeParams {
     /// Voxel edge (adjusted so voxels tile the box); 0 = use voxels_per_diameter. Give it to
-    /// have the grid known before running (downstream memory estimates need it).
-    #[param(default = Q::new(0.0))]
-    pub voxel_size: Q<Length>,
+    /// have the grid known before running (downstream memory estimates need it). `auto`:
+    /// the runner picks the coarsest voxel whose estimated error on auto_quantities meets
+    /// target_error (cheap levels at auto_levels voxels per diameter, Richardson
+    /// extrapolation; docs/sweeps.md).
+    #[param(default = VoxelSize::default())]
+    pub voxel_size: VoxelSize,
     /// Voxels across the mean volume-equivalent body diameter when voxel_size is 0.
     #[param(default = 10.0)]
     pub voxels_per_diameter: f64,
@@ -26,6 +29,8 @@ pub struct VoxelizeParams {
     pub phase_name: String,
     #[param(flatten)]
     pub subvoxel: SubvoxelOutput,
+    #[param(flatten)]
+    pub auto: AutoVoxel,
 }
 
 pub struct Voxelize;
@@ -134,6 +139,9 @@ impl TypedStage for Voxelize {
         p: &VoxelizeParams,
         inputs: &InputMetas,
     ) -> Result<Preflight<Option<f64>>, StageError> {
+        if p.voxel_size.is_auto() {
+            return Err(StageError::param("voxel_size", UNRESOLVED));
+        }
         if p.voxel_size.si() < 0.0 || !p.voxel_size.si().is_finite() {
             return Err(StageError::param(
                 "voxel_size",
