@@ -20,7 +20,7 @@ pub fn ports(info: StageInfo, report: &'static str) -> StageInfo {
         PortSpec::new(
             "image",
             ArtifactKind::PhaseImage,
-            "0 = pore, 1 = sand, 2 = binder",
+            "0 = pore, 1 = grain, 2 = binder (names: sand_phase, binder_phase)",
         ),
         PortSpec::new("report", ArtifactKind::Table, report),
     ])
@@ -50,11 +50,12 @@ pub struct BinderImage {
     /// within one voxel (paper, end of section 2.3).
     #[param(default = true)]
     pub exact_fractions: bool,
-    /// Name of phase 1.
-    #[param(default = "sand".into())]
+    /// Name of phase 1, the sand grains (the phase vocabulary's `grain`; it was `sand`
+    /// before levelset 1.2.0 / closing 1.1.0).
+    #[param(default = grainpipe_core::phases::GRAIN.into())]
     pub sand_phase: String,
     /// Name of phase 2.
-    #[param(default = "binder".into())]
+    #[param(default = grainpipe_core::phases::BINDER.into())]
     pub binder_phase: String,
 }
 
@@ -92,7 +93,7 @@ impl BinderImage {
             ("sand_phase", &self.sand_phase),
             ("binder_phase", &self.binder_phase),
         ] {
-            if name.trim().is_empty() || name == "pore" {
+            if name.trim().is_empty() || name == grainpipe_core::phases::PORE {
                 return Err(StageError::param(key, "must be a name other than `pore`"));
             }
         }
@@ -205,11 +206,12 @@ impl BinderImage {
         let (grid, voxels) = self.plan(inputs)?;
         let image = match &grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g.clone())
-                .with_phases(self.image(g.clone(), Vec::new()).phases),
+                .with_phases(self.phases()),
             None => {
                 let mut m = ArtifactMeta::of(ArtifactKind::PhaseImage);
                 m.count_estimate = voxels;
-                m
+                // The names do not depend on the grid: announced for the downstream checks.
+                m.with_phases(self.phases())
             }
         };
         Ok(Preflight::from_info(info, bytes_per_voxel * voxels)
@@ -221,24 +223,29 @@ impl BinderImage {
             .with_plan(grid))
     }
 
+    /// The phase table: `pore`, then the grains and the binder under their names.
+    pub fn phases(&self) -> Vec<Phase> {
+        vec![
+            Phase {
+                id: 0,
+                name: grainpipe_core::phases::PORE.into(),
+            },
+            Phase {
+                id: 1,
+                name: self.sand_phase.clone(),
+            },
+            Phase {
+                id: 2,
+                name: self.binder_phase.clone(),
+            },
+        ]
+    }
+
     pub fn image(&self, grid: Grid, labels: Vec<u8>) -> PhaseImage {
         PhaseImage {
             grid,
             labels,
-            phases: vec![
-                Phase {
-                    id: 0,
-                    name: "pore".into(),
-                },
-                Phase {
-                    id: 1,
-                    name: self.sand_phase.clone(),
-                },
-                Phase {
-                    id: 2,
-                    name: self.binder_phase.clone(),
-                },
-            ],
+            phases: self.phases(),
         }
     }
 }
