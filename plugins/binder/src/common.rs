@@ -38,7 +38,7 @@ pub struct BinderImage {
     /// paper's 4 um for a D50 of 140 um is 35).
     #[param(default = 35.0)]
     pub voxels_per_diameter: f64,
-    /// Sub-samples per axis in voxels cut by a grain surface (a voxel is sand when at least
+    /// Sub-samples per axis in voxels cut by a grain surface (a voxel is grain when at least
     /// half of its sub-samples are).
     #[param(default = 2, ty = "integer 1..8")]
     pub supersampling: u32,

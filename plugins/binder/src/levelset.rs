@@ -81,7 +81,7 @@ impl TypedStage for LevelSet {
              discretisation so that the image's sand fraction is the packing's analytic one \
              and the binder fraction is binder_fraction, each to within one voxel (ties \
              aside): both corrections are order statistics of per-voxel numbers (the radius \
-             offset at which a voxel turns sand, the scale a at which it joins the smoothed \
+             offset at which a voxel turns grain, the scale a at which it joins the smoothed \
              union, found per voxel by a monotone Newton root search), so no re-voxelization \
              loop runs. Memory: one byte per voxel plus 8 bytes per sphere-block pair; the \
              level set adds 4 bytes per voxel.",
