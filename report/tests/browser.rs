@@ -127,7 +127,7 @@ fn grid(n: usize, h: f64) -> Grid {
     }
 }
 
-/// A sphere of sand with a binder shell in a periodic cube, its velocity, a stress pair,
+/// A sphere of grain with a binder shell in a periodic cube, its velocity, a stress pair,
 /// the packing, an isotropic stiffness with its constants, a permeability.
 fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
     let n = 24;
@@ -162,7 +162,7 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
             },
             Phase {
                 id: 1,
-                name: "sand".into(),
+                name: "grain".into(),
             },
             Phase {
                 id: 2,
@@ -607,7 +607,7 @@ fn sweep_report_and_html_export_in_a_browser() {
             },
             Phase {
                 id: 1,
-                name: "sand".into(),
+                name: "grain".into(),
             },
         ],
     };
