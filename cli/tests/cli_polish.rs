@@ -397,7 +397,7 @@ fn warnings_are_recorded_in_the_run_and_shown_on_its_page() {
     let dir = tempfile::tempdir().unwrap();
     let yaml = SMALL.replace(
         "    with: { voxels_per_diameter: 8 }\nexport:\n",
-        "    with: { voxels_per_diameter: 8, phase_name: sand }\n  - id: stiff\n    use: elasticity.fft\n    \
+        "    with: { voxels_per_diameter: 8 }\n  - id: stiff\n    use: elasticity.fft\n    \
          in: { image: voxels.image }\n    with: { load_cases: [xx] }\nexport:\n  - { from: stiff.stiffness, to: out/c.json }\n",
     );
     assert!(yaml.contains("elasticity.fft"), "{yaml}");

@@ -247,7 +247,7 @@ fn voxels() -> String {
     "  - id: up_image\n    use: voxelize.packing\n    in: { packing: up_pack.packing }\n".into()
 }
 
-/// A sand/binder image of the RSA packing (the phases the FFT solvers' default materials
+/// A grain/binder image of the RSA packing (the phases the FFT solvers' default materials
 /// name), 8 voxels per diameter: 32^3 or 64^3 voxels.
 fn levelset(size: Size) -> String {
     format!(

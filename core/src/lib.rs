@@ -8,6 +8,7 @@ pub mod engine;
 pub mod fsutil;
 pub mod model;
 pub mod params;
+pub mod phases;
 pub mod pipeline;
 pub mod plugin_host;
 pub mod raster;

@@ -649,7 +649,7 @@ mod tests {
                 },
                 Phase {
                     id: 1,
-                    name: "solid".into(),
+                    name: "grain".into(),
                 },
             ],
         }

@@ -12,7 +12,7 @@ signal-to-noise ratio of about 9 between neighbouring phases), and a window of 7
 is cut out of the interior, so the scan is not periodic and grains and binder bridges are cut
 by its faces. Written, x fastest then y then z:
 - `ct_grey_72x72x72_u16.raw`: the scan, uint16 little-endian;
-- `ct_grey_truth_72x72x72_u8.raw`: the window's true labels (0 pore, 1 sand, 2 binder);
+- `ct_grey_truth_72x72x72_u8.raw`: the window's true labels (0 pore, 1 grain, 2 binder);
 - `ct_grey.json`: the window, the grey values and the true phase fractions.
 Only numpy is needed; the seed fixes every byte.
 """
@@ -26,7 +26,7 @@ import numpy as np
 FULL = 140  # the truth image, voxels per axis
 WINDOW = 72
 START = 34  # the window's first voxel on every axis
-GREY = {0: 8000.0, 1: 36000.0, 2: 22000.0}  # pore, sand, binder
+GREY = {0: 8000.0, 1: 36000.0, 2: 22000.0}  # pore, grain, binder
 SIGMA = 0.7  # voxels
 NOISE = 1500.0
 SEED = 33
@@ -60,7 +60,7 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     scan.tofile(out / f"ct_grey_{WINDOW}x{WINDOW}x{WINDOW}_u16.raw")
     window.tofile(out / f"ct_grey_truth_{WINDOW}x{WINDOW}x{WINDOW}_u8.raw")
-    names = {0: "pore", 1: "sand", 2: "binder"}
+    names = {0: "pore", 1: "grain", 2: "binder"}
     info = {
         "window_start_voxels": [START] * 3,
         "window_voxels": [WINDOW] * 3,

@@ -147,7 +147,9 @@ impl Volume {
     }
 }
 
-/// "pore" for label 0 and "phase<k>" for every other label present.
+/// "pore" for label 0 and "phase<k>" for every other label present: an imported label volume
+/// says nothing about its materials (label k may be one grain each), so the vocabulary's
+/// name for a label of unknown material is used rather than guessing `grain`.
 pub fn default_phase_table(labels: &[u8]) -> Vec<Phase> {
     let mut seen = [false; 256];
     for &l in labels {
@@ -157,11 +159,7 @@ pub fn default_phase_table(labels: &[u8]) -> Vec<Phase> {
         .filter(|&l| seen[l])
         .map(|l| Phase {
             id: l as u8,
-            name: if l == 0 {
-                "pore".to_string()
-            } else {
-                format!("phase{l}")
-            },
+            name: grainpipe_core::phases::unnamed(l as u8),
         })
         .collect()
 }

@@ -14,7 +14,7 @@ const DIMS: [usize; 3] = [6, 5, 4];
 const ORIGIN: [f64; 3] = [1e-3, -2e-4, 5e-5];
 const SPACING: [f64; 3] = [2e-6, 3e-6, 5e-6];
 
-/// Labels 0 (pore), 1 (sand), 2 (binder) in a pattern with every phase touching every face.
+/// Labels 0 (pore), 1 (grain), 2 (binder) in a pattern with every phase touching every face.
 fn image() -> PhaseImage {
     let [nx, ny, nz] = DIMS;
     let mut labels = Vec::new();
@@ -33,7 +33,7 @@ fn image() -> PhaseImage {
             periodic: [true, false, true],
         },
         labels,
-        phases: ["pore", "sand", "binder"]
+        phases: ["pore", "grain", "binder"]
             .iter()
             .enumerate()
             .map(|(i, n)| Phase {
@@ -159,8 +159,8 @@ fn abaqus_deck_has_one_brick_per_selected_voxel_sets_sections_and_faces() {
     let img = image();
     let dir = tempfile::tempdir().unwrap();
     for (sel, names) in [
-        (json!("all"), vec!["pore", "sand", "binder"]),
-        (json!(["sand", 2]), vec!["sand", "binder"]),
+        (json!("all"), vec!["pore", "grain", "binder"]),
+        (json!(["grain", 2]), vec!["grain", "binder"]),
     ] {
         let path = dir.path().join("m.inp");
         AbaqusExporter
@@ -267,7 +267,7 @@ fn unknown_phase_is_refused_naming_the_option() {
             &Artifact::PhaseImage(image()),
             &tempfile::tempdir().unwrap().path().join("x.inp"),
             &prov(),
-            &options(&AbaqusExporter, json!(["sand", "cement"])),
+            &options(&AbaqusExporter, json!(["grain", "cement"])),
         )
         .unwrap_err();
     assert!(
@@ -286,7 +286,7 @@ fn gmsh_file_has_a_named_physical_group_and_entity_per_phase() {
             &Artifact::PhaseImage(img.clone()),
             &path,
             &prov(),
-            &options(&GmshExporter, json!(["binder", "sand"])),
+            &options(&GmshExporter, json!(["binder", "grain"])),
         )
         .unwrap();
     let text = std::fs::read_to_string(&path).unwrap();
@@ -299,7 +299,7 @@ fn gmsh_file_has_a_named_physical_group_and_entity_per_phase() {
     // Physical tag = label + 1.
     assert_eq!(
         section("PhysicalNames"),
-        vec!["2", "3 3 \"binder\"", "3 2 \"sand\""]
+        vec!["2", "3 3 \"binder\"", "3 2 \"grain\""]
     );
     let ent = section("Entities");
     assert_eq!(ent[0], "0 0 0 2");
@@ -366,16 +366,25 @@ fn preflight_checks_phases_against_the_announced_table_and_counts_memory() {
     let meta = ArtifactMeta::on_grid(ArtifactKind::PhaseImage, img.grid.clone())
         .with_phases(img.phases.clone());
     let ok = VtuExporter
-        .preflight(&meta, &options(&VtuExporter, json!(["sand"])))
+        .preflight(&meta, &options(&VtuExporter, json!(["grain"])))
         .unwrap();
     // The corner table (4 bytes per grid corner) is counted.
     assert!(ok >= 4 * 7 * 6 * 5, "{ok}");
     let (key, msg) = VtuExporter
-        .preflight(&meta, &options(&VtuExporter, json!(["sand", "cemnt"])))
+        .preflight(&meta, &options(&VtuExporter, json!(["grain", "cemnt"])))
         .unwrap_err();
     assert_eq!(key, "phases");
     assert!(
         msg.contains("unknown phase `cemnt`") && msg.contains("binder (2)"),
+        "{msg}"
+    );
+    // A former default name says what it is called now.
+    let (key, msg) = VtuExporter
+        .preflight(&meta, &options(&VtuExporter, json!(["sand"])))
+        .unwrap_err();
+    assert_eq!(key, "phases");
+    assert!(
+        msg.contains("`sand` is the binder stages' former name for phase 1; it is now `grain`"),
         "{msg}"
     );
     // `phases` on a field, `mesh: image` of a packing: refused naming the option.

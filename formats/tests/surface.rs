@@ -187,7 +187,7 @@ fn decimation_keeps_a_closed_sphere_and_the_junctions() {
     assert!((v1 / v - 1.0).abs() < 0.01, "{}", v1 / v - 1.0);
 
     // Junctions: a ball of 1 cut by a plane into 1 and 2, in 0. The points where three
-    // labels meet (pore|sand|binder) are on the three interfaces before and after.
+    // labels meet (pore|grain|binder) are on the three interfaces before and after.
     let mut l = ball(24, 9.0);
     for (i, x) in l.iter_mut().enumerate() {
         if *x == 1 && i / (24 * 24) >= 12 {
@@ -221,9 +221,9 @@ fn decimation_keeps_a_closed_sphere_and_the_junctions() {
     assert_eq!(junction(&m1), junction(&m0));
 }
 
-/// A three-layer laminate along z: pore (0) for z < 3, sand (1) for 3 <= z < 7, binder (2)
-/// above. Reference: the planes z = origin + 3 h (pore|sand) and z = origin + 7 h
-/// (sand|binder). Away from the box walls (the cubes of voxel centres fully inside, x and y
+/// A three-layer laminate along z: pore (0) for z < 3, grain (1) for 3 <= z < 7, binder (2)
+/// above. Reference: the planes z = origin + 3 h (pore|grain) and z = origin + 7 h
+/// (grain|binder). Away from the box walls (the cubes of voxel centres fully inside, x and y
 /// in [h/2, (n - 1/2) h] from the origin) each plane is exactly (nx - 1)(ny - 1) cubes of 8
 /// triangles, area (nx - 1)(ny - 1) h^2, normals -z (out of the higher label, above, into
 /// the lower); there is no pore|binder interface.
@@ -342,7 +342,7 @@ fn image(labels: Vec<u8>, dims: [usize; 3]) -> Artifact {
             periodic: [false; 3],
         },
         labels,
-        phases: ["pore", "sand", "binder"]
+        phases: ["pore", "grain", "binder"]
             .iter()
             .enumerate()
             .map(|(i, n)| Phase {
@@ -361,7 +361,7 @@ fn options(e: &dyn Exporter, extra: serde_json::Value) -> ExportOptions {
     o
 }
 
-/// The `.msh` file of a sand ball with a binder cap: physical groups named by the pairs,
+/// The `.msh` file of a grain ball with a binder cap: physical groups named by the pairs,
 /// one element block per interface with the same triangle counts as the mesh, element data
 /// equal to the pairs; `phases: [binder]` keeps the interfaces touching binder only.
 #[test]
@@ -397,9 +397,9 @@ fn gmsh_surface_has_a_physical_group_per_interface() {
         vec![
             "4",
             "2 1 \"exterior|pore\"",
-            "2 2 \"pore|sand\"",
+            "2 2 \"pore|grain\"",
             "2 3 \"pore|binder\"",
-            "2 4 \"sand|binder\""
+            "2 4 \"grain|binder\""
         ]
     );
     let el = sec("Elements");
@@ -437,7 +437,7 @@ fn gmsh_surface_has_a_physical_group_per_interface() {
         )
         .unwrap();
     let text = std::fs::read_to_string(&p).unwrap();
-    assert!(text.contains("2 1 \"pore|binder\"\n2 2 \"sand|binder\"\n"));
+    assert!(text.contains("2 1 \"pore|binder\"\n2 2 \"grain|binder\"\n"));
 }
 
 /// Options: `smooth` without `mesh: surface` and `surface` of a packing are refused naming

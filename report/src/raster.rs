@@ -103,11 +103,12 @@ fn plane_size(grid: &Grid, plane: Plane) -> (usize, usize) {
     (grid.dims[h], grid.dims[v])
 }
 
-/// Colour of a phase: pore light grey, sand tan, binder blue, then distinct hues.
+/// Colour of a phase: pore light grey, grain tan, binder blue, then distinct hues.
 pub fn phase_color(label: u8, name: &str) -> [u8; 3] {
     match (label, name) {
         (0, _) | (_, "pore") => [236, 236, 236],
-        (_, "sand") => [214, 166, 92],
+        // `sand` was the binder stages' name for the grains: runs made before keep their look.
+        (_, "grain" | "sand") => [214, 166, 92],
         (_, "binder") => [46, 104, 180],
         _ => {
             const P: [[u8; 3]; 8] = [
@@ -301,14 +302,14 @@ mod tests {
                 },
                 Phase {
                     id: 1,
-                    name: "sand".into(),
+                    name: "grain".into(),
                 },
             ],
         };
         let s = phase_slice(&img, Plane::Xy);
         assert_eq!((s.width, s.height), (4, 3));
         // (x = 3, y = 2) is the top right pixel.
-        assert_eq!(s.get(3, 0), phase_color(1, "sand"));
+        assert_eq!(s.get(3, 0), phase_color(1, "grain"));
         assert_eq!(s.get(3, 2), phase_color(0, "pore"));
         let s = phase_slice(&img, Plane::Yz);
         assert_eq!((s.width, s.height), (3, 2));

@@ -128,7 +128,7 @@ fn grid(n: usize, h: f64) -> Grid {
     }
 }
 
-/// A sphere of sand with a binder shell in a periodic cube, its velocity, a stress pair,
+/// A sphere of grain with a binder shell in a periodic cube, its velocity, a stress pair,
 /// the packing, an isotropic stiffness with its constants, a permeability.
 fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
     let n = 24;
@@ -163,7 +163,7 @@ fn synthetic() -> (RunRecord, ReportData, data::Pictures) {
             },
             Phase {
                 id: 1,
-                name: "sand".into(),
+                name: "grain".into(),
             },
             Phase {
                 id: 2,
@@ -645,7 +645,7 @@ fn sweep_report_and_html_export_in_a_browser() {
             },
             Phase {
                 id: 1,
-                name: "sand".into(),
+                name: "grain".into(),
             },
         ],
     };

@@ -71,7 +71,7 @@ const PERIDYNAMICS: &str = "  - id: up_peri
     use: peridynamics.bond_based
     in: { image: up_bridges.image }
 ";
-// A sand/binder image (the phases the FFT solvers' default materials name).
+// A grain/binder image (the phases the FFT solvers' default materials name).
 const LEVELSET: &str = "  - id: up_binder
     use: binder.levelset
     in: { packing: up_pack.packing }
@@ -88,7 +88,7 @@ fn producer(stage: &str, port: &str, kind: ArtifactKind, files: &Path) -> (Strin
             (DISKS.into(), "up_disks.packing".into())
         }
         ("analysis.pores", "image") => (format!("{DISKS}{BRIDGES}"), "up_bridges.image".into()),
-        // Phases void/large/small/matrix: binder.bridges.
+        // Phases pore/large/small/matrix: binder.bridges.
         ("peridynamics.bond_based" | "analysis.stress_stats", "image") => {
             (format!("{DISKS}{BRIDGES}"), "up_bridges.image".into())
         }
@@ -96,7 +96,7 @@ fn producer(stage: &str, port: &str, kind: ArtifactKind, files: &Path) -> (Strin
             format!("{DISKS}{BRIDGES}{PERIDYNAMICS}"),
             "up_peri.stress".into(),
         ),
-        // Phases sand/binder: binder.levelset.
+        // Phases grain/binder: binder.levelset.
         ("elasticity.fft" | "conductivity.fft", "image") => {
             (format!("{RSA}{LEVELSET}"), "up_binder.image".into())
         }

@@ -37,7 +37,7 @@ impl PhaseSelection {
                     let ok = it.is_string() || it.as_u64().is_some_and(|k| k <= 255);
                     if !ok {
                         return Err(format!(
-                            "{it} is not a phase: give phase names (e.g. [sand, binder]) or \
+                            "{it} is not a phase: give phase names (e.g. [grain, binder]) or \
                              labels 0..=255"
                         ));
                     }
@@ -45,7 +45,7 @@ impl PhaseSelection {
                 Ok(Self::Listed(items.clone()))
             }
             other => Err(format!(
-                "{other}: give `all` or a list of phase names or labels, e.g. [sand, binder]"
+                "{other}: give `all` or a list of phase names or labels, e.g. [grain, binder]"
             )),
         }
     }
@@ -87,12 +87,13 @@ impl PhaseSelection {
                             .find(|p| &p.name == name)
                             .map(|p| (p.id, p.name.clone()))
                             .ok_or_else(|| {
-                                let hint = grainpipe_core::registry::closest(
-                                    name,
-                                    table.iter().map(|p| p.name.as_str()),
-                                )
-                                .map(|s| format!(" (did you mean `{s}`?)"))
-                                .unwrap_or_default();
+                                let names = || table.iter().map(|p| p.name.as_str());
+                                let hint = match grainpipe_core::phases::renamed_in(name, names()) {
+                                    Some(r) => format!(" ({})", r.message()),
+                                    None => grainpipe_core::registry::closest(name, names())
+                                        .map(|s| format!(" (did you mean `{s}`?)"))
+                                        .unwrap_or_default(),
+                                };
                                 format!(
                                     "unknown phase `{name}`{hint}; the image has: {}",
                                     listing()
@@ -123,7 +124,7 @@ fn phases_option() -> ExportOption {
     ExportOption {
         name: "phases",
         doc: "phase images: the phases meshed, `all` or a list of phase names and/or labels \
-              (e.g. [sand, binder]); one hexahedron per voxel of a selected phase (`mesh: \
+              (e.g. [grain, binder]); one hexahedron per voxel of a selected phase (`mesh: \
               surface`: every interface with a selected phase on one side)",
         default: json!("all"),
     }

@@ -1,5 +1,5 @@
 //! Conforming interface surfaces of a phase image: every interface between two phases
-//! (sand|pore, binder|pore, sand|binder, ...) and between a phase and the outside of the
+//! (grain|pore, binder|pore, grain|binder, ...) and between a phase and the outside of the
 //! image, as welded triangles tagged with the pair of phases they separate.
 //!
 //! The construction extends the marching tetrahedra of the `stl` exporter
@@ -17,7 +17,7 @@
 //! The face curves depend only on the face's three labels, so neighbouring tetrahedra agree
 //! on them and the label regions partition space: each interface is a 2-manifold whose only
 //! boundary is the junction lines where three or more phases meet, and a closed interface
-//! (a sphere of sand in pore) is watertight. Vertices are midpoints, face centroids and
+//! (a sphere of grain in pore) is watertight. Vertices are midpoints, face centroids and
 //! tetrahedron centroids of voxel centres, all on a lattice of 1/12 voxel, so shared
 //! vertices are welded exactly (integer keys, no tolerance).
 //!

@@ -14,7 +14,7 @@ use grainpipe_core::{
 pub struct ClosingParams {
     #[param(flatten)]
     pub image: BinderImage,
-    /// Radius of the ball the sand is closed with. Leave it out to have it found so that the
+    /// Radius of the ball the grains are closed with. Leave it out to have it found so that the
     /// binder fraction comes closest to binder_fraction; give it to keep it fixed.
     #[param(default = None)]
     pub radius: Option<Q<Length>>,
@@ -45,13 +45,13 @@ impl TypedStage for Closing {
         ports(
             StageInfo::new(
                 "binder.closing",
-                "1.0.0",
+                "1.1.0",
                 "Adds binder to a packing by a morphological closing of its voxel image (the \
              approach of Schneider et al. 2018 that the level-set binder of Donval et al. \
-             2025, section 2.3, replaces): the sand is dilated and then eroded by a ball of \
-             the given radius on the voxel grid, and binder is the closed set minus the sand. \
+             2025, section 2.3, replaces): the grains are dilated and then eroded by a ball of \
+             the given radius on the voxel grid, and binder is the closed set minus the grains. \
              The radius is found by bisection so that the binder fraction comes as close to \
-             binder_fraction as the discrete closing allows. The sand phase is imaged as by \
+             binder_fraction as the discrete closing allows. The grain phase is imaged as by \
              binder.levelset (radii corrected with exact_fractions). Because the closing acts \
              on the grid, its bridges move with the voxel size: use it as the baseline. \
              Memory: 17 bytes per voxel.",

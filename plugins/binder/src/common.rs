@@ -20,7 +20,7 @@ pub fn ports(info: StageInfo, report: &'static str) -> StageInfo {
         PortSpec::new(
             "image",
             ArtifactKind::PhaseImage,
-            "0 = pore, 1 = sand, 2 = binder",
+            "0 = pore, 1 = grain, 2 = binder (names: sand_phase, binder_phase)",
         ),
         PortSpec::new("report", ArtifactKind::Table, report),
     ])
@@ -41,7 +41,7 @@ pub struct BinderImage {
     /// paper's 4 um for a D50 of 140 um is 35).
     #[param(default = 35.0)]
     pub voxels_per_diameter: f64,
-    /// Sub-samples per axis in voxels cut by a grain surface (a voxel is sand when at least
+    /// Sub-samples per axis in voxels cut by a grain surface (a voxel is grain when at least
     /// half of its sub-samples are).
     #[param(default = 2, ty = "integer 1..8")]
     pub supersampling: u32,
@@ -53,11 +53,12 @@ pub struct BinderImage {
     /// within one voxel (paper, end of section 2.3).
     #[param(default = true)]
     pub exact_fractions: bool,
-    /// Name of phase 1.
-    #[param(default = "sand".into())]
+    /// Name of phase 1, the sand grains (the phase vocabulary's `grain`; it was `sand`
+    /// before levelset 1.2.0 / closing 1.1.0).
+    #[param(default = grainpipe_core::phases::GRAIN.into())]
     pub sand_phase: String,
     /// Name of phase 2.
-    #[param(default = "binder".into())]
+    #[param(default = grainpipe_core::phases::BINDER.into())]
     pub binder_phase: String,
     #[param(flatten)]
     pub auto: AutoVoxel,
@@ -100,7 +101,7 @@ impl BinderImage {
             ("sand_phase", &self.sand_phase),
             ("binder_phase", &self.binder_phase),
         ] {
-            if name.trim().is_empty() || name == "pore" {
+            if name.trim().is_empty() || name == grainpipe_core::phases::PORE {
                 return Err(StageError::param(key, "must be a name other than `pore`"));
             }
         }
@@ -213,11 +214,12 @@ impl BinderImage {
         let (grid, voxels) = self.plan(inputs)?;
         let image = match &grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g.clone())
-                .with_phases(self.image(g.clone(), Vec::new()).phases),
+                .with_phases(self.phases()),
             None => {
                 let mut m = ArtifactMeta::of(ArtifactKind::PhaseImage);
                 m.count_estimate = voxels;
-                m
+                // The names do not depend on the grid: announced for the downstream checks.
+                m.with_phases(self.phases())
             }
         };
         Ok(Preflight::from_info(info, bytes_per_voxel * voxels)
@@ -229,24 +231,29 @@ impl BinderImage {
             .with_plan(grid))
     }
 
+    /// The phase table: `pore`, then the grains and the binder under their names.
+    pub fn phases(&self) -> Vec<Phase> {
+        vec![
+            Phase {
+                id: 0,
+                name: grainpipe_core::phases::PORE.into(),
+            },
+            Phase {
+                id: 1,
+                name: self.sand_phase.clone(),
+            },
+            Phase {
+                id: 2,
+                name: self.binder_phase.clone(),
+            },
+        ]
+    }
+
     pub fn image(&self, grid: Grid, labels: Vec<u8>) -> PhaseImage {
         PhaseImage {
             grid,
             labels,
-            phases: vec![
-                Phase {
-                    id: 0,
-                    name: "pore".into(),
-                },
-                Phase {
-                    id: 1,
-                    name: self.sand_phase.clone(),
-                },
-                Phase {
-                    id: 2,
-                    name: self.binder_phase.clone(),
-                },
-            ],
+            phases: self.phases(),
         }
     }
 }

@@ -72,7 +72,7 @@ impl TypedStage for LevelSet {
         let mut info = ports(
             StageInfo::new(
                 "binder.levelset",
-                "1.1.0",
+                "1.2.0",
                 "Adds binder bridges to a packing of spheres or clumps and images it in three \
              phases (Donval et al. 2025, section 2.3): the signed distances to the spheres \
              (periodic where the packing is) are combined by the scaled LogSumExp of the k \
@@ -81,7 +81,7 @@ impl TypedStage for LevelSet {
              discretisation so that the image's sand fraction is the packing's analytic one \
              and the binder fraction is binder_fraction, each to within one voxel (ties \
              aside): both corrections are order statistics of per-voxel numbers (the radius \
-             offset at which a voxel turns sand, the scale a at which it joins the smoothed \
+             offset at which a voxel turns grain, the scale a at which it joins the smoothed \
              union, found per voxel by a monotone Newton root search), so no re-voxelization \
              loop runs. Memory: one byte per voxel plus 8 bytes per sphere-block pair; the \
              level set adds 4 bytes per voxel.",
@@ -96,7 +96,7 @@ impl TypedStage for LevelSet {
         info.outputs.push(PortSpec::new(
             "subvoxel",
             ArtifactKind::Field,
-            "with subvoxel: true, per voxel the fractions of pore, sand and binder and the \
+            "with subvoxel: true, per voxel the fractions of pore, grain and binder and the \
              interface normal (6 components), sampled from the sphere distances and the level \
              set, for interfaces: composite in the solvers",
         ));

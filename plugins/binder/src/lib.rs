@@ -1,4 +1,5 @@
-//! grainpipe-binder: three-phase sand / binder / pore images from packings. The level-set
+//! grainpipe-binder: three-phase images from packings: pore (0), grain (1,
+//! the sand) and binder (2). The level-set
 //! binder of Donval et al. (2025), section 2.3, and the morphological closing it replaces
 //! (Schneider et al. 2018) as the baseline. See docs/stages/binder.md.
 

@@ -146,7 +146,7 @@ fn binder_pipeline_images_stacked_sand_with_exact_fractions() {
                 .iter()
                 .map(|p| p.name.as_str())
                 .collect::<Vec<_>>(),
-            ["pore", "sand", "binder"]
+            ["pore", "grain", "binder"]
         );
     }
     let ls = res.artifact("binder.image").as_phase_image().unwrap();

@@ -270,14 +270,14 @@ impl TypedStage for Bridges {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "binder.bridges",
-            "1.1.0",
+            "1.2.0",
             "Cementing matrix as trapezoidal bridges (Topin et al., J. Cereal Sci. 47, 347 \
              (2008); Heinze et al., Phys. Rev. E 101, 052901 (2020), sec. II.B and Fig. 2a): \
              every pair of particles whose surfaces are at most max_gap apart is joined by the \
              trapezoid (frustum in 3-D) spanning their centres with base widths eta r_i and \
              eta r_j; the part outside the particles is matrix. The central square (cube) of \
-             edge crop_size is rasterised to a phase image with labels 0 void, 1 large, \
-             2 small, 3 matrix; each voxel takes the phase covering most of its \
+             edge crop_size is rasterised to a phase image with labels 0 pore, 1 large, \
+             2 small, 3 matrix (the phase names); each voxel takes the phase covering most of its \
              supersampling^d sub-samples. Particle tests use the shared sphere raster. Needs \
              the `class` attribute of packing.poisson_disk.",
         )
@@ -290,7 +290,7 @@ impl TypedStage for Bridges {
             PortSpec::new(
                 "image",
                 ArtifactKind::PhaseImage,
-                "void, large, small, matrix",
+                "0 = pore, 1 = large, 2 = small, 3 = matrix",
             ),
             PortSpec::new(
                 "report",
@@ -369,10 +369,12 @@ impl TypedStage for Bridges {
             None => 14 * (p.resolution as u64).pow(dim as u32),
         } + per_particle_bytes() * up.map(|m| m.count_estimate).unwrap_or(0)
             + (64 << 10);
+        // The phase table is fixed: announced so downstream `materials` keys are checked.
         let image = match &grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g.clone()),
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),
-        };
+        }
+        .with_phases(phases());
         let particles = match &grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::Field, g.clone()),
             None => ArtifactMeta::of(ArtifactKind::Field),

@@ -8,26 +8,25 @@ pub const CLASS_ATTR: &str = "class";
 /// sphere. The data model only knows spheres, so the dimension travels with the bodies.
 pub const DISK_ATTR: &str = "disk";
 
-/// Phase labels (shared with `peridynamics.bond_based` and `analysis.stress_stats`).
+/// Phase labels (shared with `peridynamics.bond_based` and `analysis.stress_stats`). Label 0
+/// is the phase `pore` of the vocabulary (the paper's "void": empty space); `VOID` keeps the
+/// paper's word because `analysis.pores` measures the paper's single voids on it.
 pub const VOID: u8 = 0;
 pub const LARGE: u8 = 1;
 pub const SMALL: u8 = 2;
 pub const MATRIX: u8 = 3;
 
-/// The phase table of the images this crate writes.
+/// The phase table of the images this crate writes, in the vocabulary of
+/// [`grainpipe_core::phases`]: `pore`, and the paper's classes `large`, `small`, `matrix`.
 pub fn phases() -> Vec<Phase> {
-    [
-        (VOID, "void"),
-        (LARGE, "large"),
-        (SMALL, "small"),
-        (MATRIX, "matrix"),
-    ]
-    .into_iter()
-    .map(|(id, name)| Phase {
-        id,
-        name: name.to_string(),
-    })
-    .collect()
+    use grainpipe_core::phases::{LARGE as L, MATRIX as M, PORE, SMALL as S};
+    [(VOID, PORE), (LARGE, L), (SMALL, S), (MATRIX, M)]
+        .into_iter()
+        .map(|(id, name)| Phase {
+            id,
+            name: name.to_string(),
+        })
+        .collect()
 }
 
 /// The particles of a packing as plain arrays (positions, radii, classes) plus its dimension.

@@ -8,8 +8,9 @@
 //! - `analysis.pores`: single pores, single voids, matrix saturation and partial
 //!   coordination numbers (sec. III, eqs. 8-9).
 //!
-//! Phase image convention shared with the peridynamics stages: 0 = void, 1 = large
-//! particle, 2 = small particle, 3 = matrix.
+//! Phase image convention shared with the peridynamics stages: 0 = pore (the paper's void),
+//! 1 = large particle, 2 = small particle, 3 = matrix; the names are the phase vocabulary's
+//! (docs/ARCHITECTURE.md, "Phase names").
 
 // Axis loops (`for a in 0..dim`) index several 3-vectors at once; iterator chains would hide
 // the vector algebra the comments cite.

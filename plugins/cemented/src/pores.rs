@@ -294,7 +294,8 @@ impl TypedStage for Pores {
              (matrix or void, everything not particle) enclosed by a closed chain of \
              contiguous particles; a single void is a connected region of empty space \
              enclosed by matrix, or matrix and particles. Both are labelled by flood fill \
-             (face connectivity) on the phase image (0 void, 1 large, 2 small, 3 matrix), with \
+             (face connectivity) on the phase image (labels 0 pore, i.e. the paper's empty space, \
+             1 large, 2 small, 3 matrix), with \
              the gaps of particles in contact (surface distance <= horizon, eq. 9) closed by \
              one-voxel walls. Reports per-region volumes (also normalised by the mean large \
              particle area pi r_L^2, or volume in 3-D), their PDFs, mean, standard deviation \
@@ -306,7 +307,7 @@ impl TypedStage for Pores {
             PortSpec::new(
                 "image",
                 ArtifactKind::PhaseImage,
-                "labels 0 void, 1 large, 2 small, 3 matrix",
+                "labels 0 = pore (empty space), 1 = large, 2 = small, 3 = matrix",
             ),
             PortSpec::new(
                 "packing",
@@ -376,7 +377,7 @@ impl TypedStage for Pores {
         if let Some(bad) = img.labels.iter().find(|&&l| l > MATRIX) {
             return Err(StageError::input(
                 "image",
-                format!("label {bad}: expected 0 void, 1 large, 2 small, 3 matrix"),
+                format!("label {bad}: expected 0 pore, 1 large, 2 small, 3 matrix"),
             ));
         }
         let a = analyse(img, &parts, &pk.domain, p)?;

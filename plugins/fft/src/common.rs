@@ -239,63 +239,9 @@ fn key_for<'a, V>(map: &'a IndexMap<String, V>, phase: &Phase) -> Option<&'a V> 
         .or_else(|| map.get(&phase.id.to_string()))
 }
 
-/// Checks a phase-property map (`materials`, `conductivities`) at preflight: no empty key,
-/// and, when the upstream stage announces its phase table, an entry for every phase but
-/// label 0 (which defaults to pore). A misspelt key (`bindr`) used to pass `pipe validate`
-/// and fail at run time after the upstream steps; it is now named with the phase it
-/// probably meant.
-pub fn check_keys<V>(
-    key: &str,
-    map: &IndexMap<String, V>,
-    phases: Option<&[Phase]>,
-) -> Result<(), StageError> {
-    for k in map.keys() {
-        if k.trim().is_empty() {
-            return Err(StageError::param(key, "empty phase name"));
-        }
-    }
-    let Some(phases) = phases else {
-        return Ok(());
-    };
-    let matches_a_phase = |k: &String| {
-        phases
-            .iter()
-            .any(|p| &p.name == k || p.id.to_string() == *k)
-    };
-    for phase in phases.iter().filter(|p| p.id != 0) {
-        if key_for(map, phase).is_some() {
-            continue;
-        }
-        let unmatched: Vec<&str> = map
-            .keys()
-            .filter(|k| !matches_a_phase(k))
-            .map(String::as_str)
-            .collect();
-        let hint = match grainpipe_core::suggest::closest(&phase.name, unmatched.iter().copied()) {
-            Some(k) => format!("; did you mean `{}` for `{k}`?", phase.name),
-            None => String::new(),
-        };
-        return Err(StageError::param(
-            key,
-            format!(
-                "the image will have phase `{}` (label {}) and `{key}` has no entry for it \
-                 (keys given: {}; the image's phases: {}){hint}",
-                phase.name,
-                phase.id,
-                map.keys()
-                    .map(|k| format!("`{k}`"))
-                    .collect::<Vec<_>>()
-                    .join(", "),
-                phases
-                    .iter()
-                    .map(|p| format!("`{}`", p.name))
-                    .collect::<Vec<_>>()
-                    .join(", "),
-            ),
-        ));
-    }
-    Ok(())
-}
+/// The preflight check of `materials` / `conductivities` keys against the announced phase
+/// table (did-you-mean, former default names): one place, shared with peridynamics.
+pub use grainpipe_core::phases::check_keys;
 
 /// Keys of a phase-property map that match no phase present in the image (worth a warning:
 /// a misspelt phase name would otherwise go unnoticed).

@@ -41,12 +41,12 @@ impl GradientCase {
     }
 }
 
-/// Quartz sand about 7.7 W/(m K) (the grains are mostly quartz), an inorganic (water glass)
+/// Grains (quartz sand) about 7.7 W/(m K) (the grains are mostly quartz), an inorganic (water glass)
 /// binder about 1.0 W/(m K); pores (label 0) default to 0 (air, 0.026 W/(m K), may be given).
 pub fn default_conductivities() -> IndexMap<String, Q<ThermalConductivity>> {
     let mut m = IndexMap::new();
-    m.insert("sand".to_string(), Q::new(7.7));
-    m.insert("binder".to_string(), Q::new(1.0));
+    m.insert(grainpipe_core::phases::GRAIN.to_string(), Q::new(7.7));
+    m.insert(grainpipe_core::phases::BINDER.to_string(), Q::new(1.0));
     m
 }
 
@@ -111,7 +111,7 @@ impl TypedStage for ConductivityFft {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "conductivity.fft",
-            "1.2.0",
+            "1.3.0",
             "Apparent thermal conductivity of a periodic voxel image (an image that is not \
              periodic, a scan, needs boundary: mirror, the image reflected across its \
              non-periodic axes, or periodic, its faces glued): for each macroscopic \

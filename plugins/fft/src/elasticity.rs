@@ -63,11 +63,17 @@ impl LoadCase {
     }
 }
 
-/// Table 1 of the paper: sand E = 66.9 GPa, nu = 0.25; binder E = 43 GPa, nu = 0.17.
+/// Table 1 of the paper: sand grains (`grain`) E = 66.9 GPa, nu = 0.25; binder E = 43 GPa, nu = 0.17.
 pub fn default_materials() -> IndexMap<String, Material> {
     let mut m = IndexMap::new();
-    m.insert("sand".to_string(), Material::e_nu(66.9e9, 0.25));
-    m.insert("binder".to_string(), Material::e_nu(43e9, 0.17));
+    m.insert(
+        grainpipe_core::phases::GRAIN.to_string(),
+        Material::e_nu(66.9e9, 0.25),
+    );
+    m.insert(
+        grainpipe_core::phases::BINDER.to_string(),
+        Material::e_nu(43e9, 0.17),
+    );
     m
 }
 
@@ -75,7 +81,8 @@ pub fn default_materials() -> IndexMap<String, Material> {
 pub struct ElasticityParams {
     /// Phase name or label -> {E, nu} or {K, G} (isotropic). A phase left out that is label 0
     /// is a pore (zero stiffness); any other phase of the image left out is an error. The
-    /// default is Table 1 of the paper (sand 66.9 GPa / 0.25, binder 43 GPa / 0.17).
+    /// default is Table 1 of the paper (grain, i.e. sand, 66.9 GPa / 0.25; binder 43 GPa /
+    /// 0.17).
     #[param(default = default_materials())]
     pub materials: IndexMap<String, Material>,
     /// Macroscopic unit strains to apply (engineering shear); the stiffness column of a
@@ -186,7 +193,7 @@ impl TypedStage for ElasticityFft {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "elasticity.fft",
-            "1.3.0",
+            "1.4.0",
             "Apparent stiffness of a periodic voxel image (Donval et al. 2025, section 3.2, \
              eq. 3.2-3.5): for each macroscopic unit strain E the periodic displacement \
              fluctuation u solving div C(x):(E + grad^s u) = 0 is computed by FFT-preconditioned \

@@ -92,7 +92,7 @@ fn elasticity_pipeline_runs_and_exports() {
 
 /// The error of a small pipeline (RSA spheres at 10 um voxels) whose last step is `stage`
 /// with parameters `with` (a YAML flow map); panics if it runs.
-/// A pipeline of RSA spheres voxelized at 10 um (phase `sand`) feeding `stage` with `with`.
+/// A pipeline of RSA spheres voxelized at 10 um (phase `grain`) feeding `stage` with `with`.
 fn spheres_into(stage: &str, with: &str) -> String {
     format!(
         r#"
@@ -104,7 +104,7 @@ stages:
   - id: voxels
     use: voxelize.packing
     in: {{ packing: pack.packing }}
-    with: {{ voxel_size: 10 um, phase_name: sand }}
+    with: {{ voxel_size: 10 um }}
   - id: out
     use: {stage}
     in: {{ image: voxels.image }}
@@ -138,7 +138,7 @@ fn a_material_with_mixed_keys_names_them() {
     ] {
         let err = refusal(
             "elasticity.fft",
-            &format!("{{ materials: {{ sand: {material} }} }}"),
+            &format!("{{ materials: {{ grain: {material} }} }}"),
         );
         assert!(err.contains(expect), "{material}: {err}");
         if !expect.starts_with("unknown") {
@@ -154,30 +154,30 @@ fn a_material_with_mixed_keys_names_them() {
 fn moduli_out_of_range_fail_loudly() {
     let err = refusal(
         "elasticity.fft",
-        "{ materials: { sand: { E: 1e308 Pa, nu: 0.25 } } }",
+        "{ materials: { grain: { E: 1e308 Pa, nu: 0.25 } } }",
     );
     assert!(err.contains("check the unit"), "{err}");
     let err = refusal(
         "conductivity.fft",
-        "{ conductivities: { sand: 1e307 W/(m K) } }",
+        "{ conductivities: { grain: 1e307 W/(m K) } }",
     );
     assert!(err.contains("out of floating-point range"), "{err}");
 }
 
 /// Issue 36: a phase name the image will not have (`grian` for `grain`) passed `pipe validate`
 /// and failed at run time after the upstream steps. voxelize.packing announces its phases
-/// (`pore`, `sand` here), so preflight names the phase without an entry and the likely typo.
+/// (`pore`, `grain`), so preflight names the phase without an entry and the likely typo.
 #[test]
 fn a_misspelt_phase_is_refused_at_preflight_with_a_suggestion() {
     for (stage, with, key) in [
         (
             "elasticity.fft",
-            "{ materials: { snad: { E: 66.9 GPa, nu: 0.25 } } }",
+            "{ materials: { grian: { E: 66.9 GPa, nu: 0.25 } } }",
             "materials",
         ),
         (
             "conductivity.fft",
-            "{ conductivities: { snad: 1.4 W/(m K) } }",
+            "{ conductivities: { grian: 1.4 W/(m K) } }",
             "conductivities",
         ),
     ] {
@@ -190,8 +190,8 @@ fn a_misspelt_phase_is_refused_at_preflight_with_a_suggestion() {
         let e = e.to_string();
         assert!(
             e.contains(key)
-                && e.contains("phase `sand` (label 1)")
-                && e.contains("did you mean `sand` for `snad`?"),
+                && e.contains("phase `grain` (label 1)")
+                && e.contains("did you mean `grain` for `grian`?"),
             "{stage}: {e}"
         );
     }
@@ -220,7 +220,7 @@ fn derived_and_vanishing_moduli_are_refused_at_preflight() {
     ] {
         let err = refusal(
             "elasticity.fft",
-            &format!("{{ materials: {{ sand: {material} }} }}"),
+            &format!("{{ materials: {{ grain: {material} }} }}"),
         );
         assert!(err.contains(expect), "{material}: {err}");
     }

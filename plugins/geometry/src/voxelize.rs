@@ -24,8 +24,8 @@ pub struct VoxelizeParams {
     /// Sub-samples per axis in voxels cut by a surface.
     #[param(default = 4, ty = "integer 1..16")]
     pub supersampling: u32,
-    /// Name of the solid phase (label 1).
-    #[param(default = "grain".into())]
+    /// Name of the solid phase (label 1); `grain` in the phase vocabulary.
+    #[param(default = grainpipe_core::phases::GRAIN.into())]
     pub phase_name: String,
     #[param(flatten)]
     pub subvoxel: SubvoxelOutput,
@@ -105,7 +105,7 @@ impl TypedStage for Voxelize {
             "voxelize.packing",
             "1.1.0",
             "Voxelizes a packing of spheres or clumps into a two-phase image (0 = pore, 1 = \
-             solid). A voxel entirely inside a sphere is solid, one entirely outside every \
+             grain, named by phase_name). A voxel entirely inside a sphere is solid, one entirely outside every \
              sphere is pore, and a voxel cut by a surface is sampled at supersampling^3 points \
              against the union of the spheres that reach it and is solid when at least half \
              of its points are. Periodic axes wrap. The report compares the image's solid \
@@ -118,7 +118,11 @@ impl TypedStage for Voxelize {
             "spheres or clumps to voxelize",
         )])
         .outputs(vec![
-            PortSpec::new("image", ArtifactKind::PhaseImage, "0 = pore, 1 = solid"),
+            PortSpec::new(
+                "image",
+                ArtifactKind::PhaseImage,
+                "0 = pore, 1 = grain (phase_name)",
+            ),
             PortSpec::new(
                 "report",
                 ArtifactKind::Table,
@@ -674,7 +678,7 @@ fn phase_table(solid: &str) -> Vec<Phase> {
     vec![
         Phase {
             id: 0,
-            name: "pore".into(),
+            name: grainpipe_core::phases::PORE.into(),
         },
         Phase {
             id: 1,

@@ -86,7 +86,7 @@ fn sample(n: usize) -> PhaseImage {
             periodic: [false; 3],
         },
         labels,
-        phases: ["void", "large", "small", "matrix"]
+        phases: ["pore", "large", "small", "matrix"]
             .iter()
             .enumerate()
             .map(|(i, s)| Phase {

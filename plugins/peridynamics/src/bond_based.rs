@@ -6,6 +6,7 @@ use crate::multigrid::MgOptions;
 use crate::setup::{build, Grips, Identity, PhaseSpec, Role, Setup};
 use crate::solve::{cg, relax, Dynamics, Precond, Settings, SolveError, Stats};
 use grainpipe_core::params::ParamType;
+use grainpipe_core::phases;
 use grainpipe_core::units::{Density, Dim, Dimension, Length, Pressure, Time, MAX_MODULUS, Q};
 use grainpipe_core::{
     input, params, Artifact, ArtifactKind, ArtifactMeta, ComponentConvention, Field, FieldData,
@@ -109,7 +110,7 @@ fn particle(e: f64, gc: f64) -> PhaseMaterial {
 pub fn default_materials() -> IndexMap<String, PhaseMaterial> {
     let mut m = IndexMap::new();
     m.insert(
-        "void".into(),
+        phases::PORE.into(),
         PhaseMaterial {
             role: PhaseRole::Void,
             e: Q::new(0.0),
@@ -117,15 +118,15 @@ pub fn default_materials() -> IndexMap<String, PhaseMaterial> {
         },
     );
     m.insert(
-        "large".into(),
+        phases::LARGE.into(),
         particle(4.0 * E_MATRIX, GC_PARTICLE_RATIO * GC_MATRIX),
     );
     m.insert(
-        "small".into(),
+        phases::SMALL.into(),
         particle(4.0 * E_MATRIX, GC_PARTICLE_RATIO * GC_MATRIX),
     );
     m.insert(
-        "matrix".into(),
+        phases::MATRIX.into(),
         PhaseMaterial {
             role: PhaseRole::Matrix,
             e: Q::new(E_MATRIX),
@@ -236,8 +237,10 @@ pub enum FloatingMode {
 
 #[params]
 pub struct BondBasedParams {
-    /// Phase name or label -> {role: particle|matrix|void, E, toughness}. Label 0 left out is
-    /// void; any other phase of the image left out is an error. Defaults: Table I with
+    /// Phase name or label -> {role: particle|matrix|void, E, toughness}. Label 0 (`pore`)
+    /// left out has the void role; any other phase of the image left out is an error.
+    /// Defaults, keyed by the cemented images' phases (`pore`, `large`, `small`, `matrix`):
+    /// Table I with
     /// E_m = 1 GPa (the paper gives ratios: E_p = 4 E_m; toughness K_p = 3.5 K_m, i.e.
     /// G_p = 3.5^2/4 G_m with G = K^2/E; G_m = 10 J/m^2 is an assumed scale).
     #[param(default = default_materials())]
@@ -686,7 +689,7 @@ pub fn resolve_phases(
                     "materials",
                     format!(
                         "phase `{}` (label {l}) of the image has no entry; give one under its \
-                         name or label (keys given: {:?}); only label 0 defaults to void",
+                         name or label (keys given: {:?}); only label 0 defaults to the void role",
                         phase.name,
                         materials.keys().collect::<Vec<_>>()
                     ),
@@ -704,7 +707,7 @@ impl TypedStage for BondBased {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "peridynamics.bond_based",
-            "1.1.0",
+            "1.2.0",
             "Bond-based peridynamics of a phase image under uniaxial tension (Heinze et al. \
              2020, sections II.C-D). Each non-void voxel is a node; it bonds to every node \
              within the horizon h (default 3 voxel edges: 28 neighbours in 2-D, 122 in 3-D) \
@@ -778,6 +781,13 @@ impl TypedStage for BondBased {
         inputs: &InputMetas,
     ) -> Result<Preflight<Plan>, StageError> {
         check_params(p)?;
+        // Phase names the image will not have (a typo, a former default such as `void`) are
+        // refused before the upstream steps run.
+        grainpipe_core::phases::check_keys(
+            "materials",
+            &p.materials,
+            inputs.get("image").and_then(|m| m.phases.as_deref()),
+        )?;
         let grid = grainpipe_core::announced_grid(inputs, "image")?;
         check_grid(&grid, p.axis.index())?;
         match (p.particle_identity, inputs.get("particles")) {

@@ -63,8 +63,8 @@ pub struct StressStatsParams {
     /// Bins with fewer nodes than this are left out of the tail fit (their log is noise).
     #[param(default = 5)]
     pub tail_min_count: usize,
-    /// Phase names or labels not analysed (void has no stress).
-    #[param(default = vec!["void".to_string(), "0".to_string()])]
+    /// Phase names or labels not analysed (the pore, label 0, has no stress).
+    #[param(default = vec![grainpipe_core::phases::PORE.to_string(), "0".to_string()])]
     pub exclude: Vec<String>,
     /// Voxel layers along every face of the image (x, y; and z on 3-D images) left out:
     /// within a horizon of a free side a bond-based sample carries less stress (the side
@@ -361,7 +361,7 @@ impl TypedStage for StressStats {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "analysis.stress_stats",
-            "1.1.0",
+            "1.2.0",
             "Per-phase statistics of one stress component (Heinze et al. 2020, section IV): \
              the PDF of x = sigma / mean (mean of the phase, Fig. 14, or of all analysed \
              nodes, Fig. 9 and 13) as a histogram over `range`, normalised over all nodes of \
@@ -406,6 +406,20 @@ impl TypedStage for StressStats {
 
     fn preflight(&self, p: &StressStatsParams, i: &InputMetas) -> Result<Preflight, StageError> {
         check(p)?;
+        // A former default name (`void`) would exclude nothing and let the phase it meant
+        // into the PDFs: refused with its new name when the image announces that phase.
+        if let Some(phases) = i.get("image").and_then(|m| m.phases.as_deref()) {
+            for e in &p.exclude {
+                if phases.iter().any(|ph| &ph.name == e) {
+                    continue;
+                }
+                if let Some(r) =
+                    grainpipe_core::phases::renamed_in(e, phases.iter().map(|ph| ph.name.as_str()))
+                {
+                    return Err(StageError::param("exclude", r.message()));
+                }
+            }
+        }
         let bytes = i
             .get("stress")
             .and_then(|m| m.grid.as_ref())

@@ -98,10 +98,15 @@ impl TypedStage for Clean {
             })
             .unwrap_or(0);
         // Two label copies and the component ids.
-        let meta = match grid {
+        let mut meta = match grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g),
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),
         };
+        // The input's phase table after `relabel`, so downstream keys are still checked.
+        meta.phases = i
+            .get("image")
+            .and_then(|m| m.phases.as_deref())
+            .map(|ph| phase_table(ph, &map));
         Ok(
             Preflight::from_info(&self.info(), 6 * voxels + TABLES_BYTES)
                 .announce("image", meta)

@@ -41,8 +41,9 @@ pub struct ThresholdParams {
     pub bins: usize,
     /// the label of each class, from the darkest (default 0, 1, 2, ...)
     pub labels: Vec<u8>,
-    /// the phase name of each class, from the darkest (default `pore`, `solid` for two
-    /// classes; `pore`, `phase1`, `phase2` for three)
+    /// the phase name of each class, from the darkest (default `pore`, `grain` for two
+    /// classes; `pore`, `binder`, `grain` for three: air, binder and quartz of a sand core's
+    /// CT; `pore`, `phase1`, ... for more), the phase vocabulary of docs/ARCHITECTURE.md
     pub names: Vec<String>,
 }
 
@@ -159,13 +160,7 @@ impl ThresholdParams {
             ));
         }
         let names: Vec<String> = if self.names.is_empty() {
-            (0..n)
-                .map(|k| match (k, n) {
-                    (0, _) => "pore".to_string(),
-                    (_, 2) => "solid".to_string(),
-                    _ => format!("phase{k}"),
-                })
-                .collect()
+            default_names(n)
         } else {
             self.names.clone()
         };
@@ -180,6 +175,22 @@ impl ThresholdParams {
         }
         Ok((n, labels, names))
     }
+}
+
+/// The default phase names of `n` classes, darkest first: the brightest class of a granular
+/// CT is the grain (quartz), a middle one the binder (less dense than quartz, denser than
+/// air). Four or more classes (`manual`) the stage cannot tell apart: `pore`, then
+/// `phase<k>`.
+pub fn default_names(n: usize) -> Vec<String> {
+    use grainpipe_core::phases::{unnamed, BINDER, GRAIN, PORE};
+    (0..n)
+        .map(|k| match (k, n) {
+            (0, _) => PORE.to_string(),
+            (1, 2) | (2, 3) => GRAIN.to_string(),
+            (1, 3) => BINDER.to_string(),
+            _ => unnamed(k as u8),
+        })
+        .collect()
 }
 
 /// What preflight settled: the labels and names of the classes.
@@ -197,7 +208,7 @@ impl TypedStage for Threshold {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "segment.threshold",
-            "1.0.0",
+            "1.1.0",
             "Segments a scalar grey-value field into phases by thresholds, given or found \
              on its histogram (Otsu 1979; Liao, Chen & Chung 2001). A voxel of value v gets \
              class k = the number of thresholds <= v, labelled and named by \
@@ -219,7 +230,11 @@ impl TypedStage for Threshold {
             "scalar grey values (one component), e.g. from `import.* as: field`",
         )])
         .outputs(vec![
-            PortSpec::new("image", ArtifactKind::PhaseImage, "the class labels"),
+            PortSpec::new(
+                "image",
+                ArtifactKind::PhaseImage,
+                "the class labels, named by `names` (default pore, grain; or pore, binder, grain)",
+            ),
             PortSpec::new(
                 "classes",
                 ArtifactKind::Table,
@@ -246,7 +261,18 @@ impl TypedStage for Threshold {
         let image = match grid {
             Some(g) => ArtifactMeta::on_grid(ArtifactKind::PhaseImage, g),
             None => ArtifactMeta::of(ArtifactKind::PhaseImage),
-        };
+        }
+        // The phase table is known now: downstream `materials` keys are checked against it.
+        .with_phases(
+            labels
+                .iter()
+                .zip(&names)
+                .map(|(&id, name)| Phase {
+                    id,
+                    name: name.clone(),
+                })
+                .collect(),
+        );
         let rows = n as u64;
         Ok(
             Preflight::from_info(&self.info(), 9 * voxels + TABLES_BYTES)

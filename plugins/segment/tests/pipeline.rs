@@ -249,7 +249,7 @@ stages:
         assert_eq!(l, want, "voxel {i}");
     }
     let names: Vec<&str> = im.phases.iter().map(|p| p.name.as_str()).collect();
-    assert_eq!(names, vec!["pore", "phase1", "phase2"]);
+    assert_eq!(names, vec!["pore", "binder", "grain"]);
     let upper = res.column("seg.classes", "upper");
     assert!(upper[0] > 10.0 && upper[0] < 50.0 && upper[1] > 50.0 && upper[1] < 90.0);
 }

@@ -137,7 +137,7 @@ class Image(_Volume):
 
     @property
     def phases(self) -> dict:
-        """Phase names by label ({0: "pore", 1: "solid", ...})."""
+        """Phase names by label ({0: "pore", 1: "grain", ...})."""
         return dict(self._data["phases"])
 
     def fraction(self, label: int) -> float:

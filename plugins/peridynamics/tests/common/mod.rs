@@ -23,7 +23,7 @@ pub fn image(nx: usize, ny: usize, labels: Vec<u8>) -> PhaseImage {
         phases: vec![
             Phase {
                 id: 0,
-                name: "void".into(),
+                name: "pore".into(),
             },
             Phase {
                 id: 1,
