@@ -48,13 +48,12 @@ stages:
       target_error: {target}
       auto_quantities: [cond.conductivity.0]
       auto_levels: [8, 16, 32]
-      phase_name: sand
       subvoxel: true
 {extra}  - id: cond
     use: conductivity.fft
     in: {{ image: voxels.image, subvoxel: voxels.subvoxel }}
     with:
-      conductivities: {{ sand: 100 W/(m K), "0": 1 W/(m K) }}
+      conductivities: {{ grain: 100 W/(m K), pore: 1 W/(m K) }}
       load_cases: [x]
       interfaces: composite
       discretization: hex8
