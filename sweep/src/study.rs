@@ -326,10 +326,21 @@ pub fn run_study(
             ),
         ));
     }
+    // A tensor component is collected as `step.port[k]` for `--metric step.port.k`.
+    let tensor_name = format!(
+        "{}.{}[{}]",
+        metric.step,
+        metric.port,
+        metric.column.as_deref().unwrap_or_default()
+    );
     let col = t
         .columns
         .iter()
-        .find(|c| c.name == args.metric || c.name.starts_with(&format!("{}[", args.metric)))
+        .find(|c| {
+            c.name == args.metric
+                || c.name == tensor_name
+                || c.name.starts_with(&format!("{}[", args.metric))
+        })
         .ok_or_else(|| fail(1, format!("no values of `{}` were collected", args.metric)))?;
     let z = grainpipe_analysis::ensemble::numeric(col).expect("collected values are numbers");
     let wall = t.f64_column("wall_time").expect("sweep table").to_vec();

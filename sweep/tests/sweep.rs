@@ -39,14 +39,18 @@ impl TypedStage for SlicedSphere {
             "1.0.0",
             "Test stage: a sliced sphere's volume.",
         )
-        .outputs(vec![PortSpec::new("report", ArtifactKind::Table, "volume")])
+        .outputs(vec![
+            PortSpec::new("report", ArtifactKind::Table, "volume"),
+            PortSpec::new("volume", ArtifactKind::Tensor, "the volume as a 1-tensor"),
+        ])
     }
     fn preflight(&self, p: &SlicedParams, _: &InputMetas) -> Result<Preflight, StageError> {
         if p.voxel_size.si().is_nan() || p.voxel_size.si() <= 0.0 {
             return Err(StageError::param("voxel_size", "must be positive"));
         }
         Ok(Preflight::from_info(&self.info(), 1024)
-            .announce("report", ArtifactMeta::of(ArtifactKind::Table)))
+            .announce("report", ArtifactMeta::of(ArtifactKind::Table))
+            .announce("volume", ArtifactMeta::of(ArtifactKind::Tensor)))
     }
     fn run(
         &self,
@@ -68,6 +72,16 @@ impl TypedStage for SlicedSphere {
         o.insert(
             "report".into(),
             Artifact::Table(Table::new("v").with_f64("volume", "m^3", vec![v])),
+        );
+        o.insert(
+            "volume".into(),
+            Artifact::Tensor(grainpipe_core::Tensor {
+                name: "volume".into(),
+                unit: "m^3".into(),
+                shape: vec![1],
+                values: vec![v],
+                convention: grainpipe_core::TensorConvention::Plain,
+            }),
         );
         Ok(o)
     }
@@ -647,4 +661,16 @@ fn study_recovers_order_and_extrapolated_volume() {
     for f in ["study.csv", "study.png", "study.svg", "study_memory.png"] {
         assert!(dir.join(f).is_file(), "{f}");
     }
+    // A tensor component as the metric (`step.port.k`, collected as `step.port[k]`): the
+    // same volumes, the same order.
+    let args = StudyArgs {
+        metric: "s.volume.0".into(),
+        out: Some(tmp.path().join("study-tensor")),
+        ..args
+    };
+    let (_, a) =
+        grainpipe_sweep::study::run_study(&args, &mut reg, &mut |_, _| Ok(()), &launcher())
+            .unwrap_or_else(|_| panic!("study of a tensor component failed"));
+    let (p, _) = a.richardson.expect("monotone convergence");
+    assert!((p - 2.0).abs() < 1e-6, "order {p}");
 }
