@@ -99,7 +99,7 @@ fn main() {
             cycle: CycleSettings::default(),
         };
         let t = std::time::Instant::now();
-        let r = permeability::<(), _>(dims, fluid.to_vec(), &[0], s, None, |_, _, _| Ok(()))
+        let r = permeability::<(), _>(dims, fluid.to_vec(), &[0], s, &[], |_, _, _| Ok(()))
             .unwrap()
             .unwrap();
         let secs = t.elapsed().as_secs_f64();

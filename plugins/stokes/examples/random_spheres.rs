@@ -75,7 +75,7 @@ fn main() {
     };
     let axes: Vec<usize> = (0..cases).collect();
     let t = std::time::Instant::now();
-    let r = permeability::<(), _>(dims, fluid.to_vec(), &axes, s, None, |_, _, _| Ok(()))
+    let r = permeability::<(), _>(dims, fluid.to_vec(), &axes, s, &[], |_, _, _| Ok(()))
         .unwrap()
         .unwrap();
     let secs = t.elapsed().as_secs_f64();

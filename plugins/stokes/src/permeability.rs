@@ -12,9 +12,10 @@ use grainpipe_core::boundary::{crop_lower, mirror, Boundary, BoundaryParams, Res
 use grainpipe_core::subvoxel::{InterfaceParams, Interfaces};
 use grainpipe_core::units::{Pressure, Viscosity, Q};
 use grainpipe_core::{
-    input, params, Artifact, ArtifactKind, ArtifactMeta, ComponentConvention, Field, FieldData,
-    Grid, InputMetas, Inputs, Outputs, ParamChoice, PortSpec, Preflight, ResidualProgress,
-    RunContext, StageError, StageInfo, Table, Tensor, TensorConvention, TypedStage,
+    input, params, Artifact, ArtifactKind, ArtifactMeta, Collection, ComponentConvention, Field,
+    FieldData, Grid, InputMetas, Inputs, Outputs, ParamChoice, PortSpec, Preflight,
+    ResidualProgress, RunContext, StageError, StageInfo, Table, Tensor, TensorConvention,
+    TypedStage,
 };
 use serde::{Deserialize, Serialize};
 
@@ -43,6 +44,17 @@ impl Axis {
     }
 }
 
+/// Which load directions' fields `fields: true` outputs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, ParamChoice)]
+#[serde(rename_all = "snake_case")]
+pub enum FieldDirections {
+    /// The first listed direction, as the fields `velocity` and `pressure`.
+    First,
+    /// Every listed direction, as the collections `velocities` and `pressures` (members x, y,
+    /// z); 16 B per voxel more for each direction beyond the first.
+    All,
+}
+
 #[params]
 pub struct PermeabilityParams {
     /// Load cases: the body force f = e_i for each listed axis (eq. 3.8); three give the full tensor.
@@ -63,9 +75,14 @@ pub struct PermeabilityParams {
     /// MINRES iteration limit per load case; the stage fails, naming the residual, beyond it.
     #[param(default = 2000, ty = "integer 1..100000")]
     pub max_iterations: u32,
-    /// Also output the velocity and pressure fields (voxel centred) of the first load direction.
+    /// Also output the velocity and pressure fields (voxel centred) of the first load direction
+    /// (or of every direction, `field_directions: all`).
     #[param(default = false)]
     pub fields: bool,
+    /// With fields: true, the first direction's fields (`velocity`, `pressure`) or every
+    /// direction's (`velocities`, `pressures`: collections by direction).
+    #[param(default = FieldDirections::First)]
+    pub field_directions: FieldDirections,
     /// Memory the solve may use, in GiB; 0 = the available memory of this machine.
     #[param(default = 0.0)]
     pub memory_limit_gib: f64,
@@ -104,17 +121,20 @@ pub const DARCY: f64 = 9.869_233e-13;
 /// fractions are summed: 32 more.
 pub const COMPOSITE_BYTES_PER_VOXEL: f64 = 24.0 - 3.0 + 4.0 + 32.0;
 
-/// Bytes per voxel the stage holds at its peak.
-pub fn bytes_per_voxel(fields: bool, composite: bool) -> f64 {
+/// Bytes per voxel the stage holds at its peak when it keeps the solutions (and fields) of
+/// `kept` load directions.
+pub fn bytes_per_voxel(kept: usize, composite: bool) -> f64 {
     let extra = if composite {
         COMPOSITE_BYTES_PER_VOXEL
     } else {
         0.0
     };
     let solve = (BYTES_PER_VOXEL + extra).max(LABEL_BYTES_PER_VOXEL);
-    // The kept solution (16 B) and the fields (16 B) outlive the other solver vectors.
-    if fields {
-        solve.max(16.0 + FIELD_BYTES_PER_VOXEL) + 1.0
+    // Kept solutions (16 B each): the earlier ones are held through the last solve; then
+    // each becomes its fields (16 B) before it is dropped, the last one converted last.
+    if kept > 0 {
+        let k = kept as f64;
+        (solve + 16.0 * (k - 1.0)).max(16.0 + FIELD_BYTES_PER_VOXEL * k) + 1.0
     } else {
         solve + 1.0
     }
@@ -232,7 +252,7 @@ impl TypedStage for PermeabilityStage {
     fn info(&self) -> StageInfo {
         StageInfo::new(
             "stokes.permeability",
-            "1.3.0",
+            "1.4.0",
             "Apparent permeability tensor of a periodic voxel pore space (Donval et al. 2025, \
              section 3.3, eq. 3.6-3.8): for a body force f along each load direction, the \
              periodic Stokes flow mu Lap u - grad p = -f, div u = 0 with u = 0 on the solid is \
@@ -300,6 +320,18 @@ impl TypedStage for PermeabilityStage {
                 ArtifactKind::Field,
                 "with fields: true, the periodic pressure (Pa) of the first direction (walls: the total pressure, relative to the outlet face)",
             ),
+            PortSpec::optional(
+                "velocities",
+                ArtifactKind::Collection,
+                "with fields: true and field_directions: all, the velocity field (m/s) of every \
+                 direction solved, members named x, y, z",
+            ),
+            PortSpec::optional(
+                "pressures",
+                ArtifactKind::Collection,
+                "with fields: true and field_directions: all, the pressure field (Pa) of every \
+                 direction solved, members named x, y, z",
+            ),
         ])
     }
 
@@ -327,8 +359,13 @@ impl TypedStage for PermeabilityStage {
         }
         let n = solved as f64;
         let composite = p.interface.interfaces == Interfaces::Composite;
-        // The permeameter keeps each direction's solution to read its faces.
-        let bpv = bytes_per_voxel(p.fields || bc.boundary == Boundary::Walls, composite);
+        // The permeameter keeps each direction's solution to read its faces (one at a time).
+        let kept = match (p.fields, p.field_directions) {
+            (true, FieldDirections::All) => p.directions.len(),
+            (true, FieldDirections::First) => 1,
+            (false, _) => usize::from(bc.boundary == Boundary::Walls),
+        };
+        let bpv = bytes_per_voxel(kept, composite);
         // Coarsening holds the fine image while the coarse one and its fractions are built;
         // the mirrored or padded pore space (4 bytes a voxel) is built beside the image's.
         let bytes = bpv * n
@@ -385,7 +422,12 @@ impl TypedStage for PermeabilityStage {
                 ArtifactMeta::of(ArtifactKind::Table)
                     .with_count(cases * 60, Some([0, cases * p.max_iterations as u64])),
             );
-        if p.fields {
+        let (single, every) = match (p.fields, p.field_directions) {
+            (false, _) => (false, false),
+            (true, FieldDirections::First) => (true, false),
+            (true, FieldDirections::All) => (false, true),
+        };
+        if single {
             pf = pf
                 .announce(
                     "velocity",
@@ -397,6 +439,18 @@ impl TypedStage for PermeabilityStage {
                 );
         } else {
             pf.outputs.retain(|k, _| k != "velocity" && k != "pressure");
+        }
+        if every {
+            let n = cases;
+            for port in ["velocities", "pressures"] {
+                pf = pf.announce(
+                    port,
+                    ArtifactMeta::of(ArtifactKind::Collection).with_count(n, Some([n, n])),
+                );
+            }
+        } else {
+            pf.outputs
+                .retain(|k, _| k != "velocities" && k != "pressures");
         }
         Ok(pf.with_plan(grid))
     }
@@ -481,6 +535,11 @@ impl TypedStage for PermeabilityStage {
         // Progress by each direction's residual against the tolerance (the cases may run
         // out of order: the one whose fields are kept runs last).
         let residuals = ResidualProgress::new(axes.len(), p.tolerance);
+        let field_axes: &[usize] = match (p.fields, p.field_directions) {
+            (false, _) => &[],
+            (true, FieldDirections::First) => &axes[..1],
+            (true, FieldDirections::All) => &axes,
+        };
         let mut monitor = |case: usize, _it: usize, residual: f64| {
             ctx.residual_progress(&residuals, case, residual)
         };
@@ -491,7 +550,7 @@ impl TypedStage for PermeabilityStage {
                 &axes,
                 p.buffer_voxels,
                 settings,
-                p.fields,
+                field_axes,
                 ctx,
                 &mut monitor,
             )?,
@@ -501,7 +560,7 @@ impl TypedStage for PermeabilityStage {
                 &bc,
                 &axes,
                 settings,
-                p.fields,
+                field_axes,
                 ctx,
                 &mut monitor,
             )?,
@@ -632,7 +691,12 @@ impl TypedStage for PermeabilityStage {
         );
         out.insert("report".into(), Artifact::Table(report));
         out.insert("history".into(), Artifact::Table(history));
-        if let Some(fields) = &flow.fields {
+        let field = |name: &str, unit: &str, conv, data| {
+            Field::new(grid.clone(), name, unit, conv, FieldData::F32(data))
+                .map_err(StageError::failed)
+        };
+        let (mut velocities, mut pressures) = (Collection::default(), Collection::default());
+        for (a, fields) in &flow.fields {
             // Voxel units to SI: the body force f that gives the sample `pressure_drop`
             // (u scales with f h^2 / mu, p with f h).
             let f = p.pressure_drop.si() / (h * fields.pressure_drop);
@@ -640,18 +704,32 @@ impl TypedStage for PermeabilityStage {
                 single_precision_scales(f * h * h / mu, f * h, &fields.velocity, &fields.pressure)?;
             let vel = fields.velocity.iter().map(|v| v * us).collect();
             let pre = fields.pressure.iter().map(|v| v * ps).collect();
-            let field = |name: &str, unit: &str, conv, data| {
-                Field::new(grid.clone(), name, unit, conv, FieldData::F32(data))
-                    .map_err(StageError::failed)
+            let name = ["x", "y", "z"][*a];
+            let (vname, pname) = match p.field_directions {
+                FieldDirections::First => ("velocity".to_string(), "pressure".to_string()),
+                FieldDirections::All => (format!("velocity_{name}"), format!("pressure_{name}")),
             };
-            out.insert(
-                "velocity".into(),
-                Artifact::Field(field("velocity", "m/s", ComponentConvention::Vector, vel)?),
-            );
-            out.insert(
-                "pressure".into(),
-                Artifact::Field(field("pressure", "Pa", ComponentConvention::Plain, pre)?),
-            );
+            let v = field(&vname, "m/s", ComponentConvention::Vector, vel)?;
+            let pr = field(&pname, "Pa", ComponentConvention::Plain, pre)?;
+            velocities
+                .items
+                .push((name.to_string(), Artifact::Field(v)));
+            pressures
+                .items
+                .push((name.to_string(), Artifact::Field(pr)));
+        }
+        match (p.fields, p.field_directions) {
+            (false, _) => {}
+            (true, FieldDirections::First) => {
+                let (_, v) = velocities.items.remove(0);
+                let (_, pr) = pressures.items.remove(0);
+                out.insert("velocity".into(), v);
+                out.insert("pressure".into(), pr);
+            }
+            (true, FieldDirections::All) => {
+                out.insert("velocities".into(), Artifact::Collection(velocities));
+                out.insert("pressures".into(), Artifact::Collection(pressures));
+            }
         }
         Ok(out)
     }
@@ -734,7 +812,7 @@ impl PoreSpace {
         dims: [usize; 3],
         axes: &[usize],
         settings: SolverSettings,
-        keep: Option<usize>,
+        keep: &[usize],
         monitor: M,
     ) -> Result<crate::solver::Permeability, StageError>
     where
@@ -765,10 +843,11 @@ struct Flow {
     connected_porosity: f64,
     /// The permeameter's reading per case (`boundary: walls`).
     permeameter: Vec<Option<crate::walls::Permeameter>>,
-    fields: Option<VoxelFields>,
+    /// The fields of the directions asked for, by axis, in the order of `directions`.
+    fields: Vec<(usize, VoxelFields)>,
 }
 
-/// Voxel-centred velocity and pressure of the first direction on the image's grid, in voxel
+/// Voxel-centred velocity and pressure of one direction on the image's grid, in voxel
 /// units, with the pressure drop across the sample they belong to.
 struct VoxelFields {
     velocity: Vec<f32>,
@@ -784,7 +863,7 @@ fn solve_cell<M>(
     bc: &ResolvedBoundary,
     axes: &[usize],
     settings: SolverSettings,
-    fields: bool,
+    fields: &[usize],
     ctx: &RunContext,
     monitor: M,
 ) -> Result<Flow, StageError>
@@ -805,22 +884,30 @@ where
     } else {
         (pore, dims)
     };
-    let keep = fields.then(|| axes[0]);
-    let mut res = pore.solve(cell, axes, settings, keep, monitor)?;
-    let fields = fields.then(|| {
-        let d = Dims::new(cell);
-        let (velocity, pressure) = match res.cases.iter_mut().find_map(|c| c.solution.take()) {
-            Some(x) => voxel_fields(d, &x, 1.0, 1.0),
-            // A direction that was not solved has no flow.
-            None => (vec![0f32; 3 * d.len()], vec![0f32; d.len()]),
-        };
-        VoxelFields {
-            velocity: crop_lower(&velocity, 3, cell, dims),
-            pressure: crop_lower(&pressure, 1, cell, dims),
-            // A unit body force: the drop along the sample is its length.
-            pressure_drop: dims[axes[0]] as f64,
-        }
-    });
+    let mut res = pore.solve(cell, axes, settings, fields, monitor)?;
+    let d = Dims::new(cell);
+    let fields = fields
+        .iter()
+        .map(|&a| {
+            let solution = res
+                .cases
+                .iter_mut()
+                .find(|c| c.axis == a)
+                .and_then(|c| c.solution.take());
+            let (velocity, pressure) = match solution {
+                Some(x) => voxel_fields(d, &x, 1.0, 1.0),
+                // A direction that does not percolate has no flow.
+                None => (vec![0f32; 3 * d.len()], vec![0f32; d.len()]),
+            };
+            let f = VoxelFields {
+                velocity: crop_lower(&velocity, 3, cell, dims),
+                pressure: crop_lower(&pressure, 1, cell, dims),
+                // A unit body force: the drop along the sample is its length.
+                pressure_drop: dims[a] as f64,
+            };
+            (a, f)
+        })
+        .collect();
     Ok(Flow {
         permeameter: vec![None; res.cases.len()],
         percolation: res.percolation,
@@ -841,7 +928,7 @@ fn solve_walls<M>(
     axes: &[usize],
     buffer: usize,
     settings: SolverSettings,
-    fields: bool,
+    fields: &[usize],
     ctx: &RunContext,
     mut monitor: M,
 ) -> Result<Flow, StageError>
@@ -854,7 +941,7 @@ where
     let (mut cases, mut meters) = (vec![], vec![]);
     let mut percolation: Option<Percolation> = None;
     let mut percolates = [false; 3];
-    let mut out_fields = None;
+    let mut out_fields = Vec::new();
     for (k, &a) in axes.iter().enumerate() {
         let layout = WallsLayout::new(dims, grid.periodic, a, buffer);
         if k == 0 {
@@ -872,17 +959,29 @@ where
             ));
         }
         let padded = pore.padded(&layout);
-        let mut res = padded.solve(layout.padded, &[a], settings, Some(a), |_, it, r| {
+        let mut res = padded.solve(layout.padded, &[a], settings, &[a], |_, it, r| {
             monitor(k, it, r)
         })?;
         let mut case = res.cases.remove(0);
         let meter = case.solution.take().map(|x| {
             let m = layout.apparent(&x, res.kappa[a][a]);
-            if fields && k == 0 {
-                out_fields = Some(walls_fields(&layout, &x, &m));
+            if fields.contains(&a) {
+                out_fields.push((a, walls_fields(&layout, &x, &m)));
             }
             m
         });
+        if fields.contains(&a) && meter.is_none() {
+            // The direction does not percolate: no flow.
+            let n = n as usize;
+            out_fields.push((
+                a,
+                VoxelFields {
+                    velocity: vec![0.0; 3 * n],
+                    pressure: vec![0.0; n],
+                    pressure_drop: 1.0,
+                },
+            ));
+        }
         kappa[a][a] = meter.map_or(0.0, |m| m.kappa);
         percolates[a] = res.percolation.percolates[a];
         // The sample's share of the kept pore space: through a percolating sample the buffer
@@ -902,14 +1001,6 @@ where
     }
     let mut percolation = percolation.expect("at least one direction");
     percolation.percolates = percolates;
-    if fields && out_fields.is_none() {
-        // The first direction does not percolate: no flow.
-        out_fields = Some(VoxelFields {
-            velocity: vec![0.0; 3 * n as usize],
-            pressure: vec![0.0; n as usize],
-            pressure_drop: 1.0,
-        });
-    }
     Ok(Flow {
         connected_porosity: percolation.kept as f64 / n,
         percolation,

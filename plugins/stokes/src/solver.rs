@@ -105,14 +105,14 @@ pub struct Permeability {
 }
 
 /// Solves the load cases `axes` on the label pore space `is_fluid` (walls on the voxel
-/// faces, [`diagonals`]); `keep_solution` keeps the solution of that axis.
+/// faces, [`diagonals`]); the solutions of the axes in `keep_solutions` are kept.
 /// `monitor(case index, iteration, residual)` may cancel.
 pub fn permeability<E, M>(
     dims: Dims,
     is_fluid: Vec<bool>,
     axes: &[usize],
     settings: SolverSettings,
-    keep_solution: Option<usize>,
+    keep_solutions: &[usize],
     monitor: M,
 ) -> Result<Result<Permeability, SolveError>, E>
 where
@@ -133,7 +133,7 @@ where
         None,
         axes,
         settings,
-        keep_solution,
+        keep_solutions,
         monitor,
     )
 }
@@ -151,7 +151,7 @@ pub fn permeability_composite<E, M>(
     fluid_fraction: &[f32],
     axes: &[usize],
     settings: SolverSettings,
-    keep_solution: Option<usize>,
+    keep_solutions: &[usize],
     monitor: M,
 ) -> Result<Result<Permeability, SolveError>, E>
 where
@@ -179,7 +179,7 @@ where
         Some(&force),
         axes,
         settings,
-        keep_solution,
+        keep_solutions,
         monitor,
     )
 }
@@ -196,7 +196,7 @@ fn solve_cases<D: DiagValue, E, M>(
     force: Option<&[f32]>,
     axes: &[usize],
     settings: SolverSettings,
-    keep_solution: Option<usize>,
+    keep_solutions: &[usize],
     mut monitor: M,
 ) -> Result<Result<Permeability, SolveError>, E>
 where
@@ -245,14 +245,15 @@ where
     } else {
         None
     };
-    // The case whose solution is kept runs last, so its vector can outlive the others.
+    // The cases whose solutions are kept run last, so the last one's vector can outlive the
+    // others (the earlier kept ones are copied: 16 B per voxel each).
     let mut order: Vec<(usize, usize)> = axes.iter().copied().enumerate().collect();
-    if let Some(k) = keep_solution {
-        if let Some(pos) = order.iter().position(|&(_, a)| a == k) {
-            let e = order.remove(pos);
-            order.push(e);
-        }
-    }
+    order.sort_by_key(|&(_, a)| keep_solutions.contains(&a));
+    let last_kept = order
+        .iter()
+        .rev()
+        .find(|&&(_, a)| keep_solutions.contains(&a))
+        .map(|&(k, _)| k);
     let mut results: Vec<Option<LoadCase>> = vec![None; axes.len()];
     for (case_index, axis) in order {
         if !perc.percolates[axis] {
@@ -369,9 +370,11 @@ where
             mass_error,
             history: res.history,
             note: None,
-            // The kept case runs last, so `x` is not needed after it.
-            solution: if keep_solution == Some(axis) {
+            // The last kept case runs last, so `x` is not needed after it.
+            solution: if last_kept == Some(case_index) {
                 Some(std::mem::take(&mut x))
+            } else if keep_solutions.contains(&axis) {
+                Some(x.clone())
             } else {
                 None
             },

@@ -26,7 +26,7 @@ fn plane_poiseuille_discrete_solution_is_exact() {
         max_iterations: 500,
         cycle: CycleSettings::default(),
     };
-    let r = permeability::<(), _>(dims, fluid.to_vec(), &[0], s, Some(0), |_, _, _| Ok(()))
+    let r = permeability::<(), _>(dims, fluid.to_vec(), &[0], s, &[0], |_, _, _| Ok(()))
         .unwrap()
         .unwrap();
     let x = r.cases[0].solution.as_ref().unwrap();

@@ -10,9 +10,14 @@ use grainpipe_stokes::solver::{permeability_composite, Permeability};
 use std::f64::consts::PI;
 
 fn solve_composite(dims: Dims, phi: &[f32], axes: &[usize], tol: f64) -> Permeability {
-    permeability_composite::<(), _>(dims, phi, axes, common::settings(tol), None, |_, _, _| {
-        Ok(())
-    })
+    permeability_composite::<(), _>(
+        dims,
+        phi,
+        axes,
+        common::settings(tol),
+        &[],
+        |_, _, _| Ok(()),
+    )
     .unwrap()
     .unwrap_or_else(|e| panic!("{e}"))
 }

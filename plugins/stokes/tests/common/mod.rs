@@ -15,14 +15,9 @@ pub fn settings(tol: f64) -> SolverSettings {
 
 /// Solves the listed load cases; panics on failure.
 pub fn solve(dims: Dims, fluid: &[bool], axes: &[usize], tol: f64) -> Permeability {
-    permeability::<(), _>(
-        dims,
-        fluid.to_vec(),
-        axes,
-        settings(tol),
-        None,
-        |_, _, _| Ok(()),
-    )
+    permeability::<(), _>(dims, fluid.to_vec(), axes, settings(tol), &[], |_, _, _| {
+        Ok(())
+    })
     .unwrap()
     .unwrap_or_else(|e| panic!("{e}"))
 }
