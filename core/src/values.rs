@@ -137,6 +137,27 @@ pub fn values_of(
     }
 }
 
+/// How a collected value is shown in tables and charts: its component name (`kappa_xx`,
+/// `E_z (apparent)`) when it has one, after the artifact it belongs to
+/// (`flow.permeability kappa_xx`, `x.constants E_z (apparent)`), else its name.
+pub fn display_name(name: &str, component: Option<&str>) -> String {
+    match component {
+        Some(comp) => {
+            // `flow.permeability[0]` -> `flow.permeability`; `x.constants.E_z[0]` -> `x.constants`.
+            let base = name.split('[').next().unwrap_or(name);
+            let base = match comp.split(' ').next() {
+                Some(first) => base
+                    .strip_suffix(first)
+                    .map(|b| b.trim_end_matches('.'))
+                    .unwrap_or(base),
+                None => base,
+            };
+            format!("{base} {comp}")
+        }
+        None => name.to_string(),
+    }
+}
+
 // ---------------------------------------------------------------------------------------
 // `reference:`: published or independent values a run's results are compared with
 
@@ -395,6 +416,19 @@ mod tests {
         })
         .unwrap();
         assert!(t.contains("\"component\":\"kappa_xx\""));
+    }
+
+    #[test]
+    fn values_are_shown_by_their_component_names() {
+        assert_eq!(
+            display_name("flow.permeability[8]", Some("kappa_zz")),
+            "flow.permeability kappa_zz"
+        );
+        assert_eq!(
+            display_name("x.constants.E_z[0]", Some("E_z (apparent)")),
+            "x.constants E_z (apparent)"
+        );
+        assert_eq!(display_name("s.report.volume", None), "s.report.volume");
     }
 
     #[test]

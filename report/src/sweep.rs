@@ -199,26 +199,10 @@ impl Sweep {
     }
 }
 
-/// The name a column is shown by: its component name (`kappa_xx`, `E_z (apparent)`) when
-/// the runs recorded one, prefixed by the artifact (`flow.permeability kappa_xx`), else the
-/// column's name.
+/// The name a column is shown by ([`grainpipe_core::values::display_name`]).
 fn display(s: &Sweep, c: usize) -> String {
     let n = &s.names[c];
-    match s.components.get(n) {
-        Some(comp) => {
-            // `flow.permeability[0]` -> `flow.permeability`; `x.constants.E_z[0]` -> `x.constants`.
-            let base = n.split('[').next().unwrap_or(n);
-            let base = match comp.split(' ').next() {
-                Some(first) => base
-                    .strip_suffix(first)
-                    .map(|b| b.trim_end_matches('.'))
-                    .unwrap_or(base),
-                None => base,
-            };
-            format!("{base} {comp}")
-        }
-        None => n.clone(),
-    }
+    grainpipe_core::values::display_name(n, s.components.get(n).map(String::as_str))
 }
 
 fn label(s: &Sweep, c: usize) -> String {

@@ -78,7 +78,8 @@ pub fn rve_figure(name: &str, points: &[(f64, f64, f64, f64)], fit: &RveFit) -> 
     }
 }
 
-fn sanitize(s: &str) -> String {
+/// A quantity name as a file name stem (the charts are `violin_<stem>.png`).
+pub fn sanitize(s: &str) -> String {
     s.chars()
         .map(|c| {
             if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
@@ -122,6 +123,21 @@ pub fn sweep_charts(dir: &Path, t: &Table, m: &Manifest) -> Result<(), String> {
         }
     };
     let charts = dir.join("charts");
+    // Quantities by their component names (`flow.permeability kappa_zz`, not `[8]`), as the
+    // runs recorded them.
+    let mut components: std::collections::HashMap<String, String> = Default::default();
+    for run in &m.runs {
+        for v in crate::runner::load_result(dir, &run.id)
+            .map(|r| r.values)
+            .unwrap_or_default()
+        {
+            if let Some(c) = v.component {
+                components.entry(v.name).or_insert(c);
+            }
+        }
+    }
+    let shown =
+        |q: &str| grainpipe_core::values::display_name(q, components.get(q).map(String::as_str));
     // The first numeric varied parameter is the x axis of the property-against-parameter charts.
     let xparam = group_by[1..]
         .iter()
@@ -149,8 +165,8 @@ pub fn sweep_charts(dir: &Path, t: &Table, m: &Manifest) -> Result<(), String> {
             .collect();
         if m.realizations > 1 {
             let f = violin_ci_figure(
-                &format!("{q}: distribution per point (mean, 90 % CI)"),
-                &format!("{q}{unit}"),
+                &format!("{}: distribution per point (mean, 90 % CI)", shown(q)),
+                &format!("{}{unit}", shown(q)),
                 &samples,
             );
             save(&f, &charts.join(format!("violin_{}", sanitize(q))))?;
@@ -166,12 +182,12 @@ pub fn sweep_charts(dir: &Path, t: &Table, m: &Manifest) -> Result<(), String> {
                 .collect();
             let other_groups = ensemble::groups(t, &others)?;
             let mut f = Figure {
-                title: format!("{q} against {xp} (mean, 90 % CI)"),
+                title: format!("{} against {xp} (mean, 90 % CI)", shown(q)),
                 x_label: format!(
                     "{xp} [{}]",
                     t.column(xp).map(|c| c.unit.as_str()).unwrap_or("")
                 ),
-                y_label: format!("{q}{unit}"),
+                y_label: format!("{}{unit}", shown(q)),
                 ..Default::default()
             };
             for (okey, orows) in &other_groups {

@@ -421,6 +421,18 @@ fn more_realizations_extend_a_sweep() {
     }
     let (table, _) = grainpipe_sweep::table::write_tables(&p.dir, &p.manifest).unwrap();
     assert_eq!(table.rows(), 6);
+    // Issue 36: the charts name a table row's value by its column and row
+    // (`volume_fraction (grain)`), as the report does, not by its CSV index (`[1]`).
+    grainpipe_sweep::charts::sweep_charts(&p.dir, &table, &p.manifest).unwrap();
+    let svg = std::fs::read_to_string(p.dir.join("charts").join(format!(
+        "violin_{}.svg",
+        grainpipe_sweep::charts::sanitize("phases.phases.volume_fraction[1]")
+    )))
+    .unwrap();
+    assert!(
+        svg.contains("phases.phases volume_fraction (grain): distribution per point"),
+        "title"
+    );
     // The new realization is the one a 3-realization sweep planned from the start runs.
     let fresh = tempfile::tempdir().unwrap();
     let q = prepare(
