@@ -91,7 +91,8 @@ pub struct AutoVoxel {
     pub target_error: f64,
     /// With voxel_size: auto, the values whose error is controlled, named as `pipe study
     /// --metric` names them: step.port.column for a table (e.g. stiffness.constants.E_x),
-    /// step.port.index for a tensor (e.g. flow.permeability.8 for kappa_zz).
+    /// step.port.index or step.port.<component> for a tensor (e.g. flow.permeability.8 or
+    /// flow.permeability.kappa_zz).
     #[param(default = Vec::new())]
     pub auto_quantities: Vec<String>,
     /// With voxel_size: auto, the cheap levels run first, in voxels per mean grain diameter,

@@ -111,22 +111,43 @@ pub fn values_of(
             Ok(out)
         }
         Artifact::Tensor(t) => {
-            let idx: Option<usize> = match column {
-                Some(c) => Some(c.parse().map_err(|_| {
-                    format!(
-                        "{what} `{full}.{c}`: a tensor's values are chosen by index (0..{})",
-                        t.values.len()
-                    )
-                })?),
-                None => None,
+            // A component by index (`flow.permeability.8`, named `flow.permeability[8]`) or
+            // by name (`flow.permeability.kappa_zz`, named as asked).
+            let names: Vec<String> = (0..t.values.len()).map(|k| component_name(t, k)).collect();
+            let (idx, by_name) = match column {
+                Some(c) => match c.parse::<usize>() {
+                    Ok(i) if i < t.values.len() => (Some(i), false),
+                    _ => match names.iter().position(|n| n == c) {
+                        Some(i) => (Some(i), true),
+                        None => {
+                            return Err(format!(
+                                "{what} `{full}.{c}`: a tensor's values are chosen by index \
+                                 (0..{}) or by name ({}){}",
+                                t.values.len() - 1,
+                                names.join(", "),
+                                crate::registry::closest(c, names.iter().map(String::as_str))
+                                    .map(|s| format!("; did you mean `{s}`?"))
+                                    .unwrap_or_default()
+                            ))
+                        }
+                    },
+                },
+                None => (None, false),
             };
             Ok(t.values
                 .iter()
                 .enumerate()
                 .filter(|(k, _)| idx.is_none_or(|i| i == *k))
-                .map(|(k, x)| Value {
-                    component: Some(component_name(t, k)),
-                    ..v(format!("{full}[{k}]"), &t.unit, *x)
+                .map(|(k, x)| {
+                    let name = if by_name {
+                        format!("{full}.{}", names[k])
+                    } else {
+                        format!("{full}[{k}]")
+                    };
+                    Value {
+                        component: Some(names[k].clone()),
+                        ..v(name, &t.unit, *x)
+                    }
                 })
                 .collect())
         }
@@ -429,6 +450,47 @@ mod tests {
             "x.constants E_z (apparent)"
         );
         assert_eq!(display_name("s.report.volume", None), "s.report.volume");
+    }
+
+    /// `--collect`, `--metric` and `auto_quantities` name a tensor component by index or by
+    /// name; a wrong name lists the names.
+    #[test]
+    fn tensor_components_are_chosen_by_index_or_name() {
+        let mut k = tensor("permeability", vec![3, 3]);
+        k.values = (0..9).map(f64::from).collect();
+        let mut o = Outputs::new();
+        o.insert("permeability".into(), Artifact::Tensor(k));
+        let mut outputs = IndexMap::new();
+        outputs.insert("flow".to_string(), Arc::new(o));
+        let by_index = values_of(&outputs, "flow", "permeability", Some("8"), "--collect").unwrap();
+        assert_eq!(
+            (by_index[0].name.as_str(), by_index[0].value),
+            ("flow.permeability[8]", Some(8.0))
+        );
+        let by_name = values_of(
+            &outputs,
+            "flow",
+            "permeability",
+            Some("kappa_yz"),
+            "--collect",
+        )
+        .unwrap();
+        assert_eq!(
+            (by_name[0].name.as_str(), by_name[0].value),
+            ("flow.permeability.kappa_yz", Some(5.0))
+        );
+        let e = values_of(
+            &outputs,
+            "flow",
+            "permeability",
+            Some("kapa_zz"),
+            "--collect",
+        )
+        .unwrap_err();
+        assert!(
+            e.contains("did you mean `kappa_zz`?") && e.contains("0..8"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -685,4 +685,15 @@ fn study_recovers_order_and_extrapolated_volume() {
             .unwrap_or_else(|_| panic!("study of a tensor component failed"));
     let (p, _) = a.richardson.expect("monotone convergence");
     assert!((p - 2.0).abs() < 1e-6, "order {p}");
+    // ... and by its name (`volume_0`).
+    let args = StudyArgs {
+        metric: "s.volume.volume_0".into(),
+        out: Some(tmp.path().join("study-named")),
+        ..args
+    };
+    let (_, a) =
+        grainpipe_sweep::study::run_study(&args, &mut reg, &mut |_, _| Ok(()), &launcher())
+            .unwrap_or_else(|_| panic!("study of a named tensor component failed"));
+    let (p, _) = a.richardson.expect("monotone convergence");
+    assert!((p - 2.0).abs() < 1e-6, "order {p}");
 }
