@@ -39,9 +39,11 @@ pub fn component_name(t: &crate::Tensor, k: usize) -> String {
 }
 
 /// The values `step.port[.column]` names in a run's outputs: every row of the column (or of
-/// every numeric column when none is named) of a table, or every component of a tensor (the
-/// column is then an index). Names are `step.port.column`, with `[k]` appended when there are
-/// several rows, and `step.port[k]` for a tensor. `what` is how errors name the request
+/// every numeric column when none is named) of a table, one row with `column[k]` or
+/// `column[label]`, or every component of a tensor (one with an index or a component name as
+/// the column). Names are `step.port.column`, with `[k]` appended when there are several rows,
+/// and `step.port[k]` for a tensor; a value asked for by row or component name is named as
+/// asked. `what` is how errors name the request
 /// (`--collect`, `reference`).
 pub fn values_of(
     outputs: &IndexMap<String, Arc<Outputs>>,
@@ -63,6 +65,12 @@ pub fn values_of(
     };
     match a {
         Artifact::Table(t) => {
+            // `column[row]`: one row, by index or by its label (the first text cell).
+            let (column, row) =
+                match column.and_then(|c| c.strip_suffix(']').and_then(|c| c.split_once('['))) {
+                    Some((c, r)) => (Some(c), Some(r)),
+                    None => (column, None),
+                };
             let cols: Vec<&crate::Column> = match column {
                 Some(c) => vec![t.column(c).ok_or_else(|| {
                     let names: Vec<&str> = t.columns.iter().map(|c| c.name.as_str()).collect();
@@ -108,7 +116,38 @@ pub fn values_of(
                     }
                 }
             }
-            Ok(out)
+            let Some(r) = row else {
+                return Ok(out);
+            };
+            let asked = format!("{full}.{}[{r}]", column.unwrap_or_default());
+            let labels: Vec<String> = out
+                .iter()
+                .filter_map(|v| v.component.as_deref())
+                .filter_map(|c| {
+                    c.split_once(" (")
+                        .map(|x| x.1.trim_end_matches(')').to_string())
+                })
+                .collect();
+            let k = match r.parse::<usize>() {
+                Ok(k) if k < out.len() => Some(k),
+                _ => labels.iter().position(|l| l == r),
+            };
+            match k {
+                Some(k) => {
+                    let mut one = out.swap_remove(k);
+                    one.name = asked;
+                    Ok(vec![one])
+                }
+                None => Err(format!(
+                    "{what} `{asked}`: no row `{r}`; rows are 0..{}{}",
+                    out.len().saturating_sub(1),
+                    if labels.is_empty() {
+                        String::new()
+                    } else {
+                        format!(" or by name: {}", labels.join(", "))
+                    }
+                )),
+            }
         }
         Artifact::Tensor(t) => {
             // A component by index (`flow.permeability.8`, named `flow.permeability[8]`) or
@@ -489,6 +528,33 @@ mod tests {
         .unwrap_err();
         assert!(
             e.contains("did you mean `kappa_zz`?") && e.contains("0..8"),
+            "{e}"
+        );
+    }
+
+    /// A table row by index or by its label: `constants.E_x[orthotropic]`.
+    #[test]
+    fn table_rows_are_chosen_by_index_or_label() {
+        let t = crate::Table::new("c")
+            .with_str(
+                "approximation",
+                vec!["apparent".into(), "orthotropic".into()],
+            )
+            .with_f64("E_x", "Pa", vec![1.0, 2.0]);
+        let mut o = Outputs::new();
+        o.insert("constants".into(), Artifact::Table(t));
+        let mut outputs = IndexMap::new();
+        outputs.insert("s".to_string(), Arc::new(o));
+        let get = |c: &str| values_of(&outputs, "s", "constants", Some(c), "--collect");
+        let by_label = get("E_x[orthotropic]").unwrap();
+        assert_eq!(by_label.len(), 1);
+        assert_eq!(by_label[0].name, "s.constants.E_x[orthotropic]");
+        assert_eq!(by_label[0].value, Some(2.0));
+        assert_eq!(get("E_x[0]").unwrap()[0].value, Some(1.0));
+        assert_eq!(get("E_x").unwrap().len(), 2);
+        let e = get("E_x[isotropic]").unwrap_err();
+        assert!(
+            e.contains("no row `isotropic`") && e.contains("apparent, orthotropic"),
             "{e}"
         );
     }
