@@ -633,15 +633,19 @@ fn print_reference(r: &grainpipe_core::values::Reference, res: &engine::RunResul
             .as_deref()
             .map(|k| format!(" ({k})"))
             .unwrap_or_default();
-        let line = match (c.result, c.relative_difference) {
-            (Some(x), Some(d)) => format!(
-                "{:+.1} % ({x:.4e}{} against {}){}",
-                100.0 * d,
-                match c.unit.as_str() {
-                    "" | "1" => String::new(),
-                    u => format!(" {u}"),
-                },
+        let (factor, unit) = c.written_unit();
+        let unit = if unit.is_empty() {
+            String::new()
+        } else {
+            format!(" {unit}")
+        };
+        let line = match (c.result, c.difference(), c.relative_difference) {
+            (Some(x), Some(d), Some(r)) => format!(
+                "{:.4}{unit} against {}: {:+.4}{unit} ({:+.1} %){}",
+                x / factor,
                 c.reference_written,
+                d / factor,
+                100.0 * r,
                 match c.verdict {
                     Verdict::Within => format!(", within {}", c.tolerance),
                     Verdict::Outside => format!(", OUTSIDE {}", c.tolerance),

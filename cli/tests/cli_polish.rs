@@ -456,7 +456,7 @@ fn reference_values_are_compared_recorded_and_shown() {
     let exact = 11.0 * 4.0 / 3.0 * std::f64::consts::PI * 20f64.powi(3) / 120f64.powi(3);
     assert!(err.contains("reference (the asked fraction):"), "{err}");
     assert!(
-        err.contains("+6.7 % (2.1332e-1 against 0.2), OUTSIDE 1 %"),
+        err.contains("0.2133 against 0.2: +0.0133 (+6.7 %), OUTSIDE 1 %"),
         "{err}"
     );
     let rec: serde_json::Value = serde_json::from_str(

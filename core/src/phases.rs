@@ -22,6 +22,18 @@ pub const LARGE: &str = "large";
 pub const SMALL: &str = "small";
 pub const MATRIX: &str = "matrix";
 
+/// A phase table of `pore` (label 0) and then `solids` under labels 1, 2, ...
+pub fn pore_and(solids: &[&str]) -> Vec<Phase> {
+    std::iter::once(PORE)
+        .chain(solids.iter().copied())
+        .enumerate()
+        .map(|(id, name)| Phase {
+            id: id as u8,
+            name: name.to_string(),
+        })
+        .collect()
+}
+
 /// The name of a label whose material the stage cannot know, e.g. in an imported label
 /// volume, where label k may be one grain each: `phase<k>` (label 0 is still `pore`).
 pub fn unnamed(label: u8) -> String {

@@ -306,6 +306,27 @@ pub struct Comparison {
     pub why: String,
 }
 
+impl Comparison {
+    /// The unit the reference was written in and the factor from SI to it (`5.07 GPa` ->
+    /// (1e9, "GPa")); a bare number is in SI.
+    pub fn written_unit(&self) -> (f64, &str) {
+        let w = self.reference_written.trim();
+        let (number, unit) = match w.split_once(char::is_whitespace) {
+            Some((n, u)) => (n.parse::<f64>().ok(), u.trim()),
+            None => (w.parse::<f64>().ok(), ""),
+        };
+        match number.filter(|n| *n != 0.0) {
+            Some(n) => (self.reference / n, unit),
+            None => (1.0, ""),
+        }
+    }
+
+    /// The result minus the reference, in SI.
+    pub fn difference(&self) -> Option<f64> {
+        self.result.map(|x| x - self.reference)
+    }
+}
+
 /// The dimension of a result's unit string (`Pa`, `m^2`, `1`, empty for a number).
 fn unit_dimension(unit: &str) -> Option<[i8; 7]> {
     match unit.trim() {
@@ -557,6 +578,31 @@ mod tests {
             e.contains("no row `isotropic`") && e.contains("apparent, orthotropic"),
             "{e}"
         );
+    }
+
+    /// Results are shown in the unit their reference was written in.
+    #[test]
+    fn a_comparison_knows_its_written_unit() {
+        let c = |w: &str, r: f64| Comparison {
+            quantity: "s.t.x".into(),
+            component: None,
+            reference: r,
+            reference_written: w.into(),
+            result: Some(0.5 * r),
+            unit: String::new(),
+            relative_difference: Some(-0.5),
+            tolerance: String::new(),
+            verdict: Verdict::Compared,
+            why: String::new(),
+        };
+        let gpa = c("5.07 GPa", 5.07e9);
+        let (f, u) = gpa.written_unit();
+        assert!((f / 1e9 - 1.0).abs() < 1e-12 && u == "GPa", "{f} {u}");
+        let m2 = c("2.19e-11 m^2", 2.19e-11);
+        let (f, u) = m2.written_unit();
+        assert!((f - 1.0).abs() < 1e-12 && u == "m^2", "{f} {u}");
+        assert_eq!(c("-0.09", -0.09).written_unit(), (1.0, ""));
+        assert_eq!(c("-0.09", -0.09).difference(), Some(0.045));
     }
 
     #[test]

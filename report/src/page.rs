@@ -720,12 +720,7 @@ pub fn reference_html(r: &crate::record::ReferenceRecord) -> String {
         .rows
         .iter()
         .map(|c| {
-            // The written unit: the factor from SI to it is the reference's SI value over the
-            // number it was written with.
-            let (number, unit) = split_written(&c.reference_written);
-            let factor = number
-                .filter(|n| *n != 0.0)
-                .map_or(1.0, |n| c.reference / n);
+            let (factor, unit) = c.written_unit();
             let result = match c.result {
                 Some(x) => format!("{} {}", num(x / factor), esc(unit)),
                 None => format!("<span class=\"warn\">not computed</span> {}", esc(&c.why)),
@@ -747,9 +742,16 @@ pub fn reference_html(r: &crate::record::ReferenceRecord) -> String {
                 ),
                 result,
                 esc(&c.reference_written),
-                c.relative_difference
-                    .map(signed_pct)
-                    .unwrap_or_else(|| "–".into()),
+                match (c.difference(), c.relative_difference) {
+                    (Some(d), Some(r)) => format!(
+                        "{}{} {} ({})",
+                        if d < 0.0 { "−" } else { "+" },
+                        num(d.abs() / factor),
+                        esc(unit),
+                        signed_pct(r)
+                    ),
+                    _ => "–".into(),
+                },
                 if c.tolerance.is_empty() {
                     "–".into()
                 } else {
@@ -799,15 +801,6 @@ pub fn reference_html(r: &crate::record::ReferenceRecord) -> String {
         "",
     ));
     out
-}
-
-/// `4.97 GPa` -> (4.97, "GPa"); a bare number has no unit.
-fn split_written(w: &str) -> (Option<f64>, &str) {
-    let w = w.trim();
-    match w.split_once(char::is_whitespace) {
-        Some((n, u)) => (n.parse().ok(), u.trim()),
-        None => (w.parse().ok(), ""),
-    }
 }
 
 /// A relative difference with its sign (`+3.2 %`, `−12.0 %`).

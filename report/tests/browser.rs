@@ -454,7 +454,9 @@ fn run_report_in_a_browser() {
     // unit, judged against their tolerance.
     assert!(html.contains("<a href=\"#reference\">Reference</a>"));
     assert!(html.contains("1 of 2 within their tolerance"));
-    assert!(html.contains("<td>4.6 GPa</td><td>5 GPa</td><td>−8.00 %</td><td>± 10 %</td>"));
+    assert!(
+        html.contains("<td>4.6 GPa</td><td>5 GPa</td><td>−0.4 GPa (−8.00 %)</td><td>± 10 %</td>")
+    );
     assert!(html.contains("<span class=\"bad\">outside</span>"));
     // Issue 36: warnings are shown at the top and per step, and the status says so.
     assert!(html.contains("id=\"status\">completed with 1 warning</span>"));

@@ -233,20 +233,7 @@ impl BinderImage {
 
     /// The phase table: `pore`, then the grains and the binder under their names.
     pub fn phases(&self) -> Vec<Phase> {
-        vec![
-            Phase {
-                id: 0,
-                name: grainpipe_core::phases::PORE.into(),
-            },
-            Phase {
-                id: 1,
-                name: self.sand_phase.clone(),
-            },
-            Phase {
-                id: 2,
-                name: self.binder_phase.clone(),
-            },
-        ]
+        grainpipe_core::phases::pore_and(&[&self.sand_phase, &self.binder_phase])
     }
 
     pub fn image(&self, grid: Grid, labels: Vec<u8>) -> PhaseImage {

@@ -675,14 +675,5 @@ pub fn voxelize(
 
 /// The phase table of a voxelized packing: pore (0) and the solid (1).
 fn phase_table(solid: &str) -> Vec<Phase> {
-    vec![
-        Phase {
-            id: 0,
-            name: grainpipe_core::phases::PORE.into(),
-        },
-        Phase {
-            id: 1,
-            name: solid.to_string(),
-        },
-    ]
+    grainpipe_core::phases::pore_and(&[solid])
 }
