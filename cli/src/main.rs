@@ -385,8 +385,10 @@ fn main() -> ExitCode {
             if !quiet || result.is_err() {
                 eprint!("\n{}", observer.table());
             }
-            if let (Some(r), Ok(res)) = (&doc.reference, &result) {
-                print_reference(r, res);
+            let reference =
+                grainpipe_report::record::ReferenceRecord::of(&doc, result.as_ref().ok());
+            if let (Some(r), true) = (&reference, result.is_ok()) {
+                print_reference(r);
             }
             // The run record, also of a failed run; a record that cannot be written does not
             // fail a run whose exports were written.
@@ -404,6 +406,7 @@ fn main() -> ExitCode {
                     auto_voxel: auto_choice
                         .as_ref()
                         .and_then(|c| serde_json::to_value(c).ok()),
+                    reference,
                 };
                 match grainpipe_report::write_run_dir(dir, &end) {
                     Ok(()) if !quiet => {
@@ -624,10 +627,10 @@ fn cap_cache(dir: &std::path::Path, plan: &engine::Plan, quiet: bool) {
 
 /// The `reference:` comparison of a finished run, one line per value (printed also with
 /// --quiet: it is a result, not progress).
-fn print_reference(r: &grainpipe_core::values::Reference, res: &engine::RunResult) {
+fn print_reference(r: &grainpipe_report::record::ReferenceRecord) {
     use grainpipe_core::values::Verdict;
     eprintln!("reference ({}):", r.source);
-    for c in grainpipe_core::values::compare(r, &res.outputs) {
+    for c in &r.rows {
         let what = c
             .component
             .as_deref()

@@ -57,6 +57,17 @@ fn huge_h5(path: &Path, shape: &[usize]) {
         .unwrap();
 }
 
+/// A NetCDF-4 file of a few KB declaring a 4000^3 i16 variable `labels` (nothing written),
+/// returned open. Call it under [`hdf5_lock`].
+fn huge_nc(path: &Path) -> netcdf::FileMut {
+    let mut f = netcdf::create(path).unwrap();
+    for n in ["z", "y", "x"] {
+        f.add_dimension(n, 4000).unwrap();
+    }
+    f.add_variable::<i16>("labels", &["z", "y", "x"]).unwrap();
+    f
+}
+
 #[test]
 fn a_small_hdf5_declaring_4000_cubed_is_refused_by_the_memory_check_not_read() {
     let d = tempfile::tempdir().unwrap();
@@ -81,11 +92,7 @@ fn a_small_netcdf_declaring_4000_cubed_is_refused_by_the_memory_check_not_read()
     let p = d.path().join("big.nc");
     {
         let _g = hdf5_lock();
-        let mut f = netcdf::create(&p).unwrap();
-        for n in ["z", "y", "x"] {
-            f.add_dimension(n, 4000).unwrap();
-        }
-        f.add_variable::<i16>("labels", &["z", "y", "x"]).unwrap();
+        huge_nc(&p);
     }
     assert!(std::fs::metadata(&p).unwrap().len() < 64 << 10);
     std::fs::write(
@@ -110,12 +117,11 @@ fn a_netcdf_file_locked_by_another_process_names_the_lock() {
     let p = d.path().join("big.nc");
     let mut holder = {
         let _g = hdf5_lock();
-        let mut f = netcdf::create(&p).unwrap();
-        for n in ["z", "y", "x"] {
-            f.add_dimension(n, 4000).unwrap();
-        }
-        f.add_variable::<i16>("labels", &["z", "y", "x"]).unwrap();
-        Command::new("sleep").arg("60").spawn().unwrap()
+        let f = huge_nc(&p);
+        // Forked while `f` is open: the child holds HDF5's lock on it.
+        let child = Command::new("sleep").arg("60").spawn().unwrap();
+        drop(f);
+        child
     };
     std::fs::write(
         d.path().join("p.yaml"),

@@ -103,11 +103,11 @@ pub struct ReferenceRecord {
 
 impl ReferenceRecord {
     /// The comparison of `doc`'s reference block with a run's results (every row missing
-    /// for a failed run).
-    pub fn of(doc: &PipelineDoc, result: Result<&RunResult, &String>) -> Option<Self> {
+    /// for a failed run, `None`).
+    pub fn of(doc: &PipelineDoc, result: Option<&RunResult>) -> Option<Self> {
         let r = doc.reference.as_ref()?;
         let empty = indexmap::IndexMap::new();
-        let outputs = result.map(|r| &r.outputs).unwrap_or(&empty);
+        let outputs = result.map_or(&empty, |r| &r.outputs);
         Some(ReferenceRecord {
             source: r.source.clone(),
             note: r.note.clone(),
@@ -139,6 +139,9 @@ pub struct RunEnd<'a> {
     pub warnings: Vec<(String, String)>,
     /// The `voxel_size: auto` decision, when the run had one.
     pub auto_voxel: Option<serde_json::Value>,
+    /// The `reference:` comparison ([`ReferenceRecord::of`]), computed once by the caller,
+    /// which also prints it.
+    pub reference: Option<ReferenceRecord>,
 }
 
 /// The run directory of a pipeline run without `--out`: the deepest directory containing
@@ -313,7 +316,7 @@ pub fn record(end: &RunEnd) -> RunRecord {
                 text: text.clone(),
             })
             .collect(),
-        reference: ReferenceRecord::of(doc, end.result.as_ref().copied()),
+        reference: end.reference.clone(),
         auto_voxel: end.auto_voxel.clone(),
     }
 }
